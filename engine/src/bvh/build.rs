@@ -1,0 +1,375 @@
+//! Binned SAH construction (Wald 2007, "On fast construction of SAH-based bounding
+//! volume hierarchies"), parallel over subtrees with `rayon::join` and over primitives
+//! when binning large nodes. The result depends only on the input, never on the number of
+//! threads: subtrees are spliced in a fixed order and binning reductions are exact
+//! (min/max and integer counts).
+
+use super::{Bvh, BvhNode, MAX_DEPTH};
+use crate::math::Aabb;
+use glam::Vec3A;
+use rayon::prelude::*;
+
+/// Settings of the builder; see the presets.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct BuildParams {
+    /// SAH bins per axis (2 ..= 32).
+    pub bins: usize,
+    /// Largest leaf the builder may make when the SAH prefers it.
+    pub max_leaf_size: usize,
+    /// Cost of visiting a node relative to one primitive test.
+    pub traversal_cost: f32,
+    /// Nodes with at least this many primitives build their two subtrees in parallel.
+    pub parallel_threshold: usize,
+}
+
+impl BuildParams {
+    /// Few bins and big leaves: quickest build, slower traversal.
+    pub const FAST: BuildParams = BuildParams {
+        bins: 8,
+        max_leaf_size: 8,
+        traversal_cost: 1.0,
+        parallel_threshold: 4096,
+    };
+    /// The default: good trees at a few tens of millions of primitives per second.
+    pub const BALANCED: BuildParams = BuildParams {
+        bins: 16,
+        max_leaf_size: 4,
+        traversal_cost: 1.0,
+        parallel_threshold: 4096,
+    };
+    /// Many bins and small leaves: best traversal, slowest build.
+    pub const QUALITY: BuildParams = BuildParams {
+        bins: 32,
+        max_leaf_size: 2,
+        traversal_cost: 1.0,
+        parallel_threshold: 4096,
+    };
+    /// Every preset with its name, for tests and benchmarks.
+    pub const PRESETS: [(&'static str, BuildParams); 3] = [
+        ("fast", Self::FAST),
+        ("balanced", Self::BALANCED),
+        ("quality", Self::QUALITY),
+    ];
+}
+
+impl Default for BuildParams {
+    fn default() -> Self {
+        Self::BALANCED
+    }
+}
+
+const MAX_BINS: usize = 32;
+/// Beyond this depth the builder splits at the median so the depth stays below
+/// [`MAX_DEPTH`] whatever the input (each median split halves a node of < 2³² prims).
+const FORCED_MEDIAN_DEPTH: usize = MAX_DEPTH - 33;
+/// Nodes at least this large bin their primitives in parallel.
+const PARALLEL_BINNING: usize = 1 << 16;
+
+#[derive(Clone, Copy)]
+struct PrimRef {
+    bounds: Aabb,
+    centroid: Vec3A,
+    index: u32,
+}
+
+#[derive(Clone, Copy)]
+struct Bin {
+    bounds: Aabb,
+    count: u32,
+}
+
+const EMPTY_BIN: Bin = Bin {
+    bounds: Aabb::EMPTY,
+    count: 0,
+};
+type Bins = [[Bin; MAX_BINS]; 3];
+
+enum Split {
+    Leaf,
+    Median,
+    Binned {
+        axis: usize,
+        bin: usize,
+        left: Aabb,
+        right: Aabb,
+    },
+}
+
+struct Builder {
+    params: BuildParams,
+}
+
+impl Bvh {
+    /// Builds over primitives given by their boxes; boxes that are empty or not finite
+    /// are left out (they cannot be hit). Runs on the current rayon pool.
+    pub fn build(prim_bounds: &[Aabb], params: BuildParams) -> Bvh {
+        let params = BuildParams {
+            bins: params.bins.clamp(2, MAX_BINS),
+            max_leaf_size: params.max_leaf_size.max(1),
+            ..params
+        };
+        let mut refs: Vec<PrimRef> = prim_bounds
+            .par_iter()
+            .enumerate()
+            .filter(|(_, b)| !b.is_empty() && b.min.is_finite() && b.max.is_finite())
+            .map(|(i, b)| PrimRef {
+                bounds: *b,
+                centroid: b.center(),
+                index: i as u32,
+            })
+            .collect();
+        if refs.is_empty() {
+            return Bvh::default();
+        }
+        let bounds = refs
+            .par_iter()
+            .map(|r| r.bounds)
+            .reduce(|| Aabb::EMPTY, Aabb::union);
+        let builder = Builder { params };
+        let nodes = builder.build_subtree(&mut refs, 0, bounds, 0);
+        let prim_indices = refs.iter().map(|r| r.index).collect();
+        Bvh {
+            nodes,
+            prim_indices,
+        }
+    }
+}
+
+impl Builder {
+    fn build_subtree(
+        &self,
+        refs: &mut [PrimRef],
+        prim_offset: u32,
+        bounds: Aabb,
+        depth: usize,
+    ) -> Vec<BvhNode> {
+        let mut nodes = Vec::with_capacity(
+            (2 * refs.len()).saturating_sub(1) / self.params.max_leaf_size.max(1) + 1,
+        );
+        nodes.push(BvhNode::leaf(bounds, prim_offset, 0));
+        self.build_node(refs, prim_offset, bounds, depth, &mut nodes, 0);
+        nodes
+    }
+
+    fn build_node(
+        &self,
+        refs: &mut [PrimRef],
+        prim_offset: u32,
+        bounds: Aabb,
+        depth: usize,
+        nodes: &mut Vec<BvhNode>,
+        at: usize,
+    ) {
+        let n = refs.len();
+        let (mid, left_bounds, right_bounds) = match self.find_split(refs, bounds, depth) {
+            Split::Leaf => {
+                nodes[at] = BvhNode::leaf(bounds, prim_offset, n as u32);
+                return;
+            }
+            Split::Median => {
+                let mid = n / 2;
+                (mid, union_of(&refs[..mid]), union_of(&refs[mid..]))
+            }
+            Split::Binned {
+                axis,
+                bin,
+                left,
+                right,
+            } => {
+                let (scale, min) = bin_transform(&centroid_bounds(refs), self.params.bins);
+                let mid = partition(refs, |r| {
+                    bin_index(r.centroid, axis, scale, min, self.params.bins) < bin
+                });
+                (mid, left, right)
+            }
+        };
+        let (left, right) = refs.split_at_mut(mid);
+        let right_offset = prim_offset + mid as u32;
+        if n >= self.params.parallel_threshold {
+            let (ln, rn) = rayon::join(
+                || self.build_subtree(left, prim_offset, left_bounds, depth + 1),
+                || self.build_subtree(right, right_offset, right_bounds, depth + 1),
+            );
+            let pair = nodes.len();
+            nodes[at] = BvhNode::interior(bounds, pair as u32);
+            let base_left = pair + 2;
+            let base_right = base_left + ln.len() - 1;
+            let remap = |node: &BvhNode, base: usize| {
+                if node.is_leaf() {
+                    *node
+                } else {
+                    BvhNode {
+                        first: (base + node.first as usize - 1) as u32,
+                        ..*node
+                    }
+                }
+            };
+            nodes.push(remap(&ln[0], base_left));
+            nodes.push(remap(&rn[0], base_right));
+            nodes.extend(ln[1..].iter().map(|x| remap(x, base_left)));
+            nodes.extend(rn[1..].iter().map(|x| remap(x, base_right)));
+        } else {
+            let pair = nodes.len();
+            nodes[at] = BvhNode::interior(bounds, pair as u32);
+            nodes.push(BvhNode::leaf(left_bounds, prim_offset, 0));
+            nodes.push(BvhNode::leaf(right_bounds, right_offset, 0));
+            self.build_node(left, prim_offset, left_bounds, depth + 1, nodes, pair);
+            self.build_node(
+                right,
+                right_offset,
+                right_bounds,
+                depth + 1,
+                nodes,
+                pair + 1,
+            );
+        }
+    }
+
+    fn find_split(&self, refs: &[PrimRef], bounds: Aabb, depth: usize) -> Split {
+        let n = refs.len();
+        let max_leaf = self.params.max_leaf_size;
+        if n <= 1 {
+            return Split::Leaf;
+        }
+        if depth >= FORCED_MEDIAN_DEPTH {
+            return if n <= max_leaf {
+                Split::Leaf
+            } else {
+                Split::Median
+            };
+        }
+        let cb = centroid_bounds(refs);
+        let bins_per_axis = self.params.bins;
+        let (scale, min) = bin_transform(&cb, bins_per_axis);
+        let bins = if n >= PARALLEL_BINNING {
+            refs.par_chunks(16 * 1024)
+                .map(|chunk| fill_bins(chunk, scale, min, bins_per_axis))
+                .reduce(|| [[EMPTY_BIN; MAX_BINS]; 3], merge_bins)
+        } else {
+            fill_bins(refs, scale, min, bins_per_axis)
+        };
+
+        let mut best: Option<(f32, usize, usize, Aabb, Aabb)> = None;
+        for (axis, axis_bins) in bins.iter().enumerate() {
+            if scale[axis] == 0.0 {
+                continue;
+            }
+            let bins = &axis_bins[..bins_per_axis];
+            let mut right_cost = [0.0f32; MAX_BINS];
+            let mut right_bounds = [Aabb::EMPTY; MAX_BINS];
+            let (mut acc, mut count) = (Aabb::EMPTY, 0u32);
+            for i in (1..bins_per_axis).rev() {
+                acc = acc.union(bins[i].bounds);
+                count += bins[i].count;
+                right_bounds[i] = acc;
+                right_cost[i] = if count == 0 {
+                    f32::INFINITY
+                } else {
+                    acc.surface_area() * count as f32
+                };
+            }
+            let (mut acc, mut count) = (Aabb::EMPTY, 0u32);
+            for i in 1..bins_per_axis {
+                acc = acc.union(bins[i - 1].bounds);
+                count += bins[i - 1].count;
+                if count == 0 || !right_cost[i].is_finite() {
+                    continue;
+                }
+                let cost = acc.surface_area() * count as f32 + right_cost[i];
+                if best.is_none_or(|b| cost < b.0) {
+                    best = Some((cost, axis, i, acc, right_bounds[i]));
+                }
+            }
+        }
+        let Some((cost, axis, bin, left, right)) = best else {
+            return if n <= max_leaf {
+                Split::Leaf
+            } else {
+                Split::Median
+            };
+        };
+        let area = bounds.surface_area();
+        let split_cost = self.params.traversal_cost * area + cost;
+        let leaf_cost = n as f32 * area;
+        if n <= max_leaf && leaf_cost <= split_cost {
+            Split::Leaf
+        } else {
+            Split::Binned {
+                axis,
+                bin,
+                left,
+                right,
+            }
+        }
+    }
+}
+
+fn union_of(refs: &[PrimRef]) -> Aabb {
+    refs.iter().fold(Aabb::EMPTY, |b, r| b.union(r.bounds))
+}
+
+fn centroid_bounds(refs: &[PrimRef]) -> Aabb {
+    if refs.len() >= PARALLEL_BINNING {
+        refs.par_iter()
+            .map(|r| Aabb::new(r.centroid, r.centroid))
+            .reduce(|| Aabb::EMPTY, Aabb::union)
+    } else {
+        refs.iter().fold(Aabb::EMPTY, |b, r| b.grow(r.centroid))
+    }
+}
+
+/// Per-axis scale and offset mapping a centroid to a bin; scale 0 marks an axis with no
+/// extent (nothing to split).
+fn bin_transform(cb: &Aabb, bins: usize) -> (Vec3A, Vec3A) {
+    let extent = cb.extent();
+    let scale = Vec3A::select(
+        extent.cmpgt(Vec3A::ZERO) & extent.cmplt(Vec3A::splat(f32::INFINITY)),
+        Vec3A::splat(bins as f32) / extent,
+        Vec3A::ZERO,
+    );
+    // A non-finite scale (huge bins / tiny extent) would break the bin mapping.
+    let scale = Vec3A::select(scale.is_finite_mask(), scale, Vec3A::ZERO);
+    (scale, cb.min)
+}
+
+#[inline]
+fn bin_index(centroid: Vec3A, axis: usize, scale: Vec3A, min: Vec3A, bins: usize) -> usize {
+    (((centroid[axis] - min[axis]) * scale[axis]) as usize).min(bins - 1)
+}
+
+fn fill_bins(refs: &[PrimRef], scale: Vec3A, min: Vec3A, bins: usize) -> Bins {
+    let mut out = [[EMPTY_BIN; MAX_BINS]; 3];
+    for r in refs {
+        for (axis, axis_bins) in out.iter_mut().enumerate() {
+            let b = &mut axis_bins[bin_index(r.centroid, axis, scale, min, bins)];
+            b.bounds = b.bounds.union(r.bounds);
+            b.count += 1;
+        }
+    }
+    out
+}
+
+fn merge_bins(mut a: Bins, b: Bins) -> Bins {
+    for (xa, xb) in a.iter_mut().zip(b.iter()) {
+        for (ba, bb) in xa.iter_mut().zip(xb.iter()) {
+            ba.bounds = ba.bounds.union(bb.bounds);
+            ba.count += bb.count;
+        }
+    }
+    a
+}
+
+/// Moves the elements for which `goes_left` holds to the front; returns their count.
+fn partition(refs: &mut [PrimRef], goes_left: impl Fn(&PrimRef) -> bool) -> usize {
+    let mut i = 0;
+    let mut j = refs.len();
+    while i < j {
+        if goes_left(&refs[i]) {
+            i += 1;
+        } else {
+            j -= 1;
+            refs.swap(i, j);
+        }
+    }
+    i
+}

@@ -1,0 +1,121 @@
+//! Structural validation of a built BVH: every invariant a traversal relies on.
+
+use super::{Bvh, MAX_DEPTH};
+use crate::math::Aabb;
+
+/// Shape of a valid BVH, returned by [`Bvh::validate`].
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
+pub struct BvhReport {
+    /// Node count.
+    pub nodes: usize,
+    /// Leaf count.
+    pub leaves: usize,
+    /// Deepest leaf (root = 0).
+    pub max_depth: usize,
+    /// Largest leaf.
+    pub max_leaf_size: usize,
+    /// SAH cost relative to the root's area (traversal cost 1, primitive cost 1).
+    pub sah_cost: f32,
+}
+
+impl Bvh {
+    /// Checks that the tree is well formed for `prim_bounds` (the boxes it was built from):
+    /// children inside the array and after their parent, every node reached once, every
+    /// leaf slot owned by exactly one leaf, every valid primitive referenced exactly once,
+    /// boxes nested, depth below the traversal stack.
+    pub fn validate(&self, prim_bounds: &[Aabb]) -> Result<BvhReport, String> {
+        let valid = |b: &Aabb| !b.is_empty() && b.min.is_finite() && b.max.is_finite();
+        let mut expected: Vec<u32> = (0..prim_bounds.len() as u32)
+            .filter(|&i| valid(&prim_bounds[i as usize]))
+            .collect();
+        let mut referenced = self.prim_indices.clone();
+        referenced.sort_unstable();
+        expected.sort_unstable();
+        if referenced != expected {
+            return Err(format!(
+                "{} primitives referenced, {} valid ones expected (or the sets differ)",
+                referenced.len(),
+                expected.len()
+            ));
+        }
+        if self.nodes.is_empty() {
+            return if self.prim_indices.is_empty() {
+                Ok(BvhReport::default())
+            } else {
+                Err("no nodes but primitives".into())
+            };
+        }
+        let root_area = self.nodes[0].bounds().surface_area().max(f32::MIN_POSITIVE);
+        let mut report = BvhReport {
+            nodes: self.nodes.len(),
+            ..Default::default()
+        };
+        let mut seen_node = vec![false; self.nodes.len()];
+        let mut seen_slot = vec![false; self.prim_indices.len()];
+        let mut stack = vec![(0usize, 0usize)];
+        while let Some((index, depth)) = stack.pop() {
+            if std::mem::replace(&mut seen_node[index], true) {
+                return Err(format!("node {index} reached twice"));
+            }
+            let node = &self.nodes[index];
+            let bounds = node.bounds();
+            if bounds.is_empty() || !bounds.min.is_finite() || !bounds.max.is_finite() {
+                return Err(format!("node {index} has an empty or non-finite box"));
+            }
+            if depth >= MAX_DEPTH {
+                return Err(format!(
+                    "node {index} at depth {depth} exceeds the traversal stack"
+                ));
+            }
+            let relative_area = bounds.surface_area() / root_area;
+            if node.is_leaf() {
+                let (first, count) = (node.first as usize, node.count as usize);
+                if first + count > self.prim_indices.len() {
+                    return Err(format!(
+                        "leaf {index} slots {first}..{} out of range",
+                        first + count
+                    ));
+                }
+                for slot in first..first + count {
+                    if std::mem::replace(&mut seen_slot[slot], true) {
+                        return Err(format!("slot {slot} owned by two leaves"));
+                    }
+                    let prim = &prim_bounds[self.prim_indices[slot] as usize];
+                    if !bounds.contains(prim) {
+                        return Err(format!(
+                            "leaf {index} box does not contain primitive {}",
+                            self.prim_indices[slot]
+                        ));
+                    }
+                }
+                report.leaves += 1;
+                report.max_depth = report.max_depth.max(depth);
+                report.max_leaf_size = report.max_leaf_size.max(count);
+                report.sah_cost += relative_area * count as f32;
+            } else {
+                let left = node.first as usize;
+                if left <= index || left + 1 >= self.nodes.len() {
+                    return Err(format!(
+                        "interior node {index} has children at {left}, {} (of {})",
+                        left + 1,
+                        self.nodes.len()
+                    ));
+                }
+                for child in [left, left + 1] {
+                    if !bounds.contains(&self.nodes[child].bounds()) {
+                        return Err(format!("node {index} box does not contain child {child}"));
+                    }
+                    stack.push((child, depth + 1));
+                }
+                report.sah_cost += relative_area;
+            }
+        }
+        if let Some(i) = seen_node.iter().position(|s| !s) {
+            return Err(format!("node {i} is unreachable"));
+        }
+        if let Some(s) = seen_slot.iter().position(|s| !s) {
+            return Err(format!("slot {s} belongs to no leaf"));
+        }
+        Ok(report)
+    }
+}

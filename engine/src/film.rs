@@ -1,0 +1,414 @@
+//! Frames and films: a [`FrameBuffer`] holds one frame's per-pixel sample sums; a
+//! camera's [`Film`] accumulates frames in f64 so the running mean never stalls; both
+//! turn into PNG (exposure, filmic tone curve, sRGB) or EXR (linear radiance).
+
+use crate::bvh::TraversalStats;
+use crate::shading::linear_to_srgb;
+use bevy_ecs::component::Component;
+use glam::Vec3;
+use std::path::{Path, PathBuf};
+
+/// A rectangle of pixels rendered as one unit of work.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct Tile {
+    /// Left column.
+    pub x: u32,
+    /// Top row.
+    pub y: u32,
+    /// Width.
+    pub width: u32,
+    /// Height.
+    pub height: u32,
+}
+
+impl Tile {
+    /// Tiles of `size`×`size` covering a `width`×`height` image, row by row.
+    pub fn grid(width: u32, height: u32, size: u32) -> Vec<Tile> {
+        let size = size.max(1);
+        let mut tiles = Vec::new();
+        for y in (0..height).step_by(size as usize) {
+            for x in (0..width).step_by(size as usize) {
+                tiles.push(Tile {
+                    x,
+                    y,
+                    width: size.min(width - x),
+                    height: size.min(height - y),
+                });
+            }
+        }
+        tiles
+    }
+
+    /// Pixels in the tile.
+    pub fn pixel_count(&self) -> usize {
+        self.width as usize * self.height as usize
+    }
+}
+
+/// One tile's output: per-pixel sums of accepted samples and their counts.
+#[derive(Clone, Debug, PartialEq)]
+pub struct TileResult {
+    /// Where it goes.
+    pub tile: Tile,
+    /// Sum of accepted radiance samples per pixel, row-major within the tile.
+    pub sums: Vec<Vec3>,
+    /// Accepted samples per pixel.
+    pub counts: Vec<u32>,
+    /// Samples dropped because they were NaN or infinite.
+    pub rejected: u64,
+    /// Traversal counters.
+    pub stats: TraversalStats,
+}
+
+/// One rendered frame of one camera.
+#[derive(Component, Clone, Debug, PartialEq)]
+pub struct FrameBuffer {
+    /// Width.
+    pub width: u32,
+    /// Height.
+    pub height: u32,
+    /// Per-pixel sums of accepted samples.
+    pub sums: Vec<Vec3>,
+    /// Per-pixel accepted sample counts.
+    pub counts: Vec<u32>,
+    /// NaN/Inf samples dropped in this frame.
+    pub rejected: u64,
+    /// Counters of this frame.
+    pub stats: TraversalStats,
+    /// Progressive frame index the samples were drawn for (0 starts a new accumulation).
+    pub frame_index: u32,
+}
+
+impl FrameBuffer {
+    /// An empty frame.
+    pub fn new(width: u32, height: u32, frame_index: u32) -> Self {
+        let n = width as usize * height as usize;
+        Self {
+            width,
+            height,
+            sums: vec![Vec3::ZERO; n],
+            counts: vec![0; n],
+            rejected: 0,
+            stats: TraversalStats::default(),
+            frame_index,
+        }
+    }
+
+    /// Copies a tile's pixels in and adds its counters.
+    pub fn write_tile(&mut self, result: &TileResult) {
+        let t = result.tile;
+        for row in 0..t.height {
+            let src = (row * t.width) as usize;
+            let dst = ((t.y + row) * self.width + t.x) as usize;
+            let n = t.width as usize;
+            self.sums[dst..dst + n].copy_from_slice(&result.sums[src..src + n]);
+            self.counts[dst..dst + n].copy_from_slice(&result.counts[src..src + n]);
+        }
+        self.rejected += result.rejected;
+        self.stats.add(&result.stats);
+    }
+
+    /// Mean radiance per pixel (zero where no sample was accepted).
+    pub fn mean(&self) -> Vec<Vec3> {
+        self.sums
+            .iter()
+            .zip(&self.counts)
+            .map(|(s, &c)| if c > 0 { *s / c as f32 } else { Vec3::ZERO })
+            .collect()
+    }
+}
+
+/// A camera's accumulation buffer: f64 sums and sample counts per pixel.
+#[derive(Component, Clone, Debug, PartialEq)]
+pub struct Film {
+    width: u32,
+    height: u32,
+    sums: Vec<[f64; 3]>,
+    counts: Vec<u64>,
+    frames: u32,
+    rejected: u64,
+    resets: u64,
+}
+
+impl Film {
+    /// An empty film.
+    pub fn new(width: u32, height: u32) -> Self {
+        let n = width as usize * height as usize;
+        Self {
+            width,
+            height,
+            sums: vec![[0.0; 3]; n],
+            counts: vec![0; n],
+            frames: 0,
+            rejected: 0,
+            resets: 0,
+        }
+    }
+
+    /// Width.
+    pub fn width(&self) -> u32 {
+        self.width
+    }
+
+    /// Height.
+    pub fn height(&self) -> u32 {
+        self.height
+    }
+
+    /// Frames accumulated since the last reset.
+    pub fn frames(&self) -> u32 {
+        self.frames
+    }
+
+    /// NaN/Inf samples dropped since the last reset.
+    pub fn rejected_samples(&self) -> u64 {
+        self.rejected
+    }
+
+    /// How many times accumulation restarted (a change of camera or scene).
+    pub fn resets(&self) -> u64 {
+        self.resets
+    }
+
+    /// Forgets everything accumulated, resizing if needed.
+    pub fn reset(&mut self, width: u32, height: u32) {
+        let resets = self.resets + 1;
+        *self = Film::new(width, height);
+        self.resets = resets;
+    }
+
+    /// Adds a frame; a frame with index 0 (or of another size) restarts accumulation.
+    pub fn accumulate(&mut self, frame: &FrameBuffer) {
+        if frame.frame_index == 0 || frame.width != self.width || frame.height != self.height {
+            self.reset(frame.width, frame.height);
+        }
+        for ((sum, count), (s, &c)) in self
+            .sums
+            .iter_mut()
+            .zip(self.counts.iter_mut())
+            .zip(frame.sums.iter().zip(&frame.counts))
+        {
+            sum[0] += s.x as f64;
+            sum[1] += s.y as f64;
+            sum[2] += s.z as f64;
+            *count += c as u64;
+        }
+        self.frames += 1;
+        self.rejected += frame.rejected;
+    }
+
+    /// Adds one sample to one pixel (for tests and tools that splat).
+    pub fn add_sample(&mut self, x: u32, y: u32, radiance: Vec3) {
+        if !radiance.is_finite() {
+            self.rejected += 1;
+            return;
+        }
+        let i = (y * self.width + x) as usize;
+        self.sums[i][0] += radiance.x as f64;
+        self.sums[i][1] += radiance.y as f64;
+        self.sums[i][2] += radiance.z as f64;
+        self.counts[i] += 1;
+    }
+
+    /// Mean radiance of one pixel.
+    pub fn pixel(&self, x: u32, y: u32) -> [f64; 3] {
+        let i = (y * self.width + x) as usize;
+        let c = self.counts[i].max(1) as f64;
+        self.sums[i].map(|s| s / c)
+    }
+
+    /// Mean radiance of every pixel, row-major, as f32 RGB.
+    pub fn mean_rgb(&self) -> Vec<[f32; 3]> {
+        self.sums
+            .iter()
+            .zip(&self.counts)
+            .map(|(s, &c)| s.map(|v| (v / c.max(1) as f64) as f32))
+            .collect()
+    }
+
+    /// Tone-mapped 8-bit sRGB RGBA pixels (exposure in stops, then the ACES filmic fit).
+    pub fn to_srgba8(&self, exposure: f32) -> Vec<u8> {
+        let scale = 2f32.powf(exposure);
+        self.mean_rgb()
+            .iter()
+            .flat_map(|p| {
+                let [r, g, b] = p.map(|v| (linear_to_srgb(filmic(v * scale)) * 255.0 + 0.5) as u8);
+                [r, g, b, 255]
+            })
+            .collect()
+    }
+
+    /// Writes a tone-mapped PNG, atomically (temporary file, then rename).
+    pub fn write_png(&self, path: &Path, exposure: f32) -> Result<(), OutputError> {
+        let pixels = self.to_srgba8(exposure);
+        write_atomically(path, |tmp| {
+            image::save_buffer_with_format(
+                tmp,
+                &pixels,
+                self.width,
+                self.height,
+                image::ExtendedColorType::Rgba8,
+                image::ImageFormat::Png,
+            )
+            .map_err(|e| e.to_string())
+        })
+    }
+
+    /// Writes linear mean radiance as an RGBA f32 EXR, atomically.
+    pub fn write_exr(&self, path: &Path) -> Result<(), OutputError> {
+        let mean = self.mean_rgb();
+        let width = self.width as usize;
+        write_atomically(path, |tmp| {
+            exr::prelude::write_rgba_file(tmp, width, self.height as usize, |x, y| {
+                let [r, g, b] = mean[y * width + x];
+                (r, g, b, 1.0f32)
+            })
+            .map_err(|e| e.to_string())
+        })
+    }
+
+    /// Writes PNG or EXR by the path's extension.
+    pub fn write(&self, path: &Path, exposure: f32) -> Result<(), OutputError> {
+        match ImageKind::from_path(path)? {
+            ImageKind::Png => self.write_png(path, exposure),
+            ImageKind::Exr => self.write_exr(path),
+        }
+    }
+}
+
+/// The output formats.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum ImageKind {
+    /// 8-bit tone-mapped sRGB.
+    Png,
+    /// 32-bit float linear radiance.
+    Exr,
+}
+
+impl ImageKind {
+    /// The format an output path asks for.
+    pub fn from_path(path: &Path) -> Result<Self, OutputError> {
+        match path
+            .extension()
+            .and_then(|e| e.to_str())
+            .map(str::to_ascii_lowercase)
+            .as_deref()
+        {
+            Some("png") => Ok(Self::Png),
+            Some("exr") => Ok(Self::Exr),
+            _ => Err(OutputError::UnknownFormat {
+                path: path.to_owned(),
+            }),
+        }
+    }
+}
+
+/// Why an image could not be written.
+#[derive(Debug, thiserror::Error)]
+pub enum OutputError {
+    /// The extension is neither `.png` nor `.exr`.
+    #[error("{}: unknown image format (use a .png or .exr file name)", path.display())]
+    UnknownFormat {
+        /// The path given.
+        path: PathBuf,
+    },
+    /// Encoding or file system failure.
+    #[error("{}: could not write image: {reason}", path.display())]
+    Write {
+        /// The path given.
+        path: PathBuf,
+        /// What went wrong.
+        reason: String,
+    },
+}
+
+fn write_atomically(
+    path: &Path,
+    write: impl FnOnce(&Path) -> Result<(), String>,
+) -> Result<(), OutputError> {
+    let fail = |reason: String| OutputError::Write {
+        path: path.to_owned(),
+        reason,
+    };
+    let name = path
+        .file_name()
+        .ok_or_else(|| fail("not a file name".into()))?;
+    // Keep the extension last: the encoders pick the format from it.
+    let tmp = path.with_file_name(format!(
+        ".{}.{}.tmp.{}",
+        name.to_string_lossy(),
+        std::process::id(),
+        path.extension().and_then(|e| e.to_str()).unwrap_or("")
+    ));
+    if let Err(reason) = write(&tmp) {
+        let _ = std::fs::remove_file(&tmp);
+        return Err(fail(reason));
+    }
+    std::fs::rename(&tmp, path).map_err(|e| {
+        let _ = std::fs::remove_file(&tmp);
+        fail(e.to_string())
+    })
+}
+
+/// Narkowicz's fit of the ACES filmic curve, clamped to [0, 1]; NaN maps to 0.
+#[inline]
+pub fn filmic(x: f32) -> f32 {
+    // Clamp first: inf/inf would be NaN, and the curve is flat at 1 long before 1e9.
+    let x = if x.is_nan() { 0.0 } else { x.clamp(0.0, 1e9) };
+    ((x * (2.51 * x + 0.03)) / (x * (2.43 * x + 0.59) + 0.14)).clamp(0.0, 1.0)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn tiles_cover_the_image_once() {
+        let (w, h) = (37, 23);
+        let mut hits = vec![0u8; (w * h) as usize];
+        for t in Tile::grid(w, h, 8) {
+            for y in t.y..t.y + t.height {
+                for x in t.x..t.x + t.width {
+                    hits[(y * w + x) as usize] += 1;
+                }
+            }
+        }
+        assert!(hits.iter().all(|&c| c == 1));
+    }
+
+    #[test]
+    fn accumulation_of_many_unit_samples_is_exact() {
+        let mut film = Film::new(1, 1);
+        let mut frame = FrameBuffer::new(1, 1, 0);
+        frame.sums[0] = Vec3::splat(1024.0);
+        frame.counts[0] = 1024;
+        for i in 0..(1 << 15) {
+            frame.frame_index = i;
+            film.accumulate(&frame);
+        }
+        assert_eq!(film.pixel(0, 0), [1.0; 3]);
+        assert_eq!(film.counts[0], 1 << 25);
+    }
+
+    #[test]
+    fn non_finite_samples_are_counted_not_added() {
+        let mut film = Film::new(1, 1);
+        film.add_sample(0, 0, Vec3::ONE);
+        film.add_sample(0, 0, Vec3::new(f32::NAN, 0.0, 0.0));
+        film.add_sample(0, 0, Vec3::splat(f32::INFINITY));
+        assert_eq!(film.pixel(0, 0), [1.0; 3]);
+        assert_eq!(film.rejected_samples(), 2);
+    }
+
+    #[test]
+    fn filmic_is_monotone_and_bounded() {
+        let mut last = 0.0;
+        for i in 0..1000 {
+            let v = filmic(i as f32 * 0.05);
+            assert!(v >= last && v <= 1.0);
+            last = v;
+        }
+        assert_eq!(filmic(f32::NAN), 0.0);
+        assert_eq!(filmic(f32::INFINITY), 1.0);
+    }
+}

@@ -1,0 +1,147 @@
+//! Species geometry: each mesh with its bottom-level BVH, built once and shared by every
+//! instance, collected in the [`GeometryLibrary`].
+
+use crate::bvh::{BuildParams, Bvh, TraversalStats};
+use crate::math::{Aabb, Ray};
+use crate::mesh::{MeshError, TriangleMesh};
+use crate::triangle::{TriangleHit, WatertightRay};
+use glam::Vec3A;
+use rayon::prelude::*;
+
+/// Index of a mesh in the [`GeometryLibrary`].
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, PartialOrd, Ord)]
+pub struct GeometryId(pub u32);
+
+/// A mesh and its BLAS, with the triangles' corners copied in BVH leaf order so a leaf
+/// reads contiguous memory.
+#[derive(Clone, Debug)]
+pub struct Geometry {
+    /// Human-readable name (species or glTF mesh name).
+    pub name: String,
+    /// The source mesh (attributes for shading).
+    pub mesh: TriangleMesh,
+    /// The BLAS over the mesh's triangles.
+    pub bvh: Bvh,
+    /// Triangle corners in slot order.
+    corners: Vec<[Vec3A; 3]>,
+}
+
+/// A hit inside one geometry.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct GeometryHit {
+    /// Triangle index in the mesh.
+    pub triangle: u32,
+    /// Distance and barycentrics.
+    pub hit: TriangleHit,
+}
+
+impl Geometry {
+    /// Checks the mesh and builds its BLAS on the current rayon pool.
+    pub fn new(
+        name: impl Into<String>,
+        mesh: TriangleMesh,
+        params: BuildParams,
+    ) -> Result<Self, MeshError> {
+        mesh.check()?;
+        let bounds: Vec<Aabb> = (0..mesh.triangle_count())
+            .into_par_iter()
+            .map(|i| mesh.triangle_bounds(i))
+            .collect();
+        let bvh = Bvh::build(&bounds, params);
+        let corners = bvh
+            .prim_indices
+            .iter()
+            .map(|&t| mesh.triangle(t as usize))
+            .collect();
+        Ok(Self {
+            name: name.into(),
+            mesh,
+            bvh,
+            corners,
+        })
+    }
+
+    /// Object-space box.
+    pub fn bounds(&self) -> Aabb {
+        self.bvh.bounds()
+    }
+
+    /// Closest hit with `0 < t < ray.t_max` that `accept(triangle, hit)` keeps.
+    #[inline]
+    pub fn intersect_closest(
+        &self,
+        ray: &Ray,
+        stats: &mut TraversalStats,
+        mut accept: impl FnMut(u32, &TriangleHit) -> bool,
+    ) -> Option<GeometryHit> {
+        let wray = WatertightRay::new(ray);
+        let mut best = None;
+        self.bvh.traverse_closest(ray, stats, |slot, t_max| {
+            let [p0, p1, p2] = self.corners[slot];
+            let hit = wray.intersect(p0, p1, p2, t_max)?;
+            let triangle = self.bvh.prim_indices[slot];
+            if !accept(triangle, &hit) {
+                return None;
+            }
+            best = Some(GeometryHit { triangle, hit });
+            Some(hit.t)
+        });
+        best
+    }
+
+    /// True when some triangle that `accept` keeps is hit with `0 < t < ray.t_max`.
+    #[inline]
+    pub fn intersect_any(
+        &self,
+        ray: &Ray,
+        stats: &mut TraversalStats,
+        mut accept: impl FnMut(u32, &TriangleHit) -> bool,
+    ) -> bool {
+        let wray = WatertightRay::new(ray);
+        self.bvh.traverse_any(ray, stats, |slot, t_max| {
+            let [p0, p1, p2] = self.corners[slot];
+            match wray.intersect(p0, p1, p2, t_max) {
+                Some(hit) => accept(self.bvh.prim_indices[slot], &hit),
+                None => false,
+            }
+        })
+    }
+
+    /// Heap bytes held (mesh, BVH, corner copy).
+    pub fn memory_bytes(&self) -> usize {
+        self.mesh.memory_bytes() + self.bvh.memory_bytes() + self.corners.capacity() * 48
+    }
+}
+
+/// Every mesh of the scene; instances refer to them by [`GeometryId`].
+#[derive(Clone, Debug, Default, bevy_ecs::resource::Resource)]
+pub struct GeometryLibrary {
+    /// Meshes with their BLAS, indexed by `GeometryId.0`.
+    pub geometries: Vec<Geometry>,
+}
+
+impl GeometryLibrary {
+    /// Adds a built geometry and returns its id.
+    pub fn add(&mut self, geometry: Geometry) -> GeometryId {
+        self.geometries.push(geometry);
+        GeometryId(self.geometries.len() as u32 - 1)
+    }
+
+    /// The geometry with this id.
+    pub fn get(&self, id: GeometryId) -> Option<&Geometry> {
+        self.geometries.get(id.0 as usize)
+    }
+
+    /// Total unique triangles.
+    pub fn triangle_count(&self) -> usize {
+        self.geometries
+            .iter()
+            .map(|g| g.mesh.triangle_count())
+            .sum()
+    }
+
+    /// Heap bytes held.
+    pub fn memory_bytes(&self) -> usize {
+        self.geometries.iter().map(Geometry::memory_bytes).sum()
+    }
+}

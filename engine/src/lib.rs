@@ -1,0 +1,33 @@
+//! # sylva_engine
+//!
+//! Sylva's data and kernels, independent of any schedule or file format: math and
+//! robust floating point, structure-of-arrays meshes, BVH build and traversal (one BVH
+//! type for the per-species BLAS and the instance TLAS), watertight triangle tests,
+//! textures and shaders, lights, hash-based sampling, cameras, films and the tile render
+//! kernel. The ECS components live here too, so every crate agrees on them.
+
+pub mod bvh;
+pub mod camera;
+pub mod components;
+pub mod film;
+pub mod geometry;
+pub mod light;
+pub mod math;
+pub mod mesh;
+pub mod render;
+pub mod sampling;
+pub mod shading;
+pub mod tlas;
+pub mod triangle;
+
+pub use bvh::{BuildParams, Bvh, TraversalStats};
+pub use camera::{Camera, CameraView, Lens};
+pub use components::{Hidden, Instance, Transform};
+pub use film::{Film, FrameBuffer, ImageKind, OutputError, Tile};
+pub use geometry::{Geometry, GeometryId, GeometryLibrary};
+pub use light::{DirectionalLight, LightSet, SkyLight};
+pub use math::{Aabb, Ray};
+pub use mesh::TriangleMesh;
+pub use render::{RenderParams, RenderScene, render_frame, render_tile};
+pub use shading::{Shader, ShaderId, ShaderTable, Texture};
+pub use tlas::{InstanceDesc, TopLevel};

@@ -1,0 +1,66 @@
+//! Lights: a directional sun and a gradient sky. Light entities carry these components;
+//! the kernel reads them through [`LightSet`].
+
+use bevy_ecs::{component::Component, resource::Resource};
+use glam::{Vec3, Vec3A};
+
+/// A distant light such as the sun.
+#[derive(Component, Clone, Copy, Debug, PartialEq)]
+pub struct DirectionalLight {
+    /// Unit direction from the scene toward the light.
+    pub direction: Vec3,
+    /// Irradiance on a surface facing the light (linear RGB).
+    pub irradiance: Vec3,
+}
+
+/// A sky whose radiance blends from `horizon` to `zenith` with elevation; below the
+/// horizon it is `ground`. Equal colours give a constant sky.
+#[derive(Component, Clone, Copy, Debug, PartialEq)]
+pub struct SkyLight {
+    /// Radiance straight up.
+    pub zenith: Vec3,
+    /// Radiance at the horizon.
+    pub horizon: Vec3,
+    /// Radiance from below the horizon.
+    pub ground: Vec3,
+}
+
+impl SkyLight {
+    /// A sky of one radiance in every direction.
+    pub fn constant(radiance: Vec3) -> Self {
+        Self {
+            zenith: radiance,
+            horizon: radiance,
+            ground: radiance,
+        }
+    }
+
+    /// Radiance arriving from direction `d` (+Y is up; `d` need not be unit length).
+    #[inline]
+    pub fn radiance(&self, d: Vec3A) -> Vec3A {
+        let len = d.length();
+        let y = if len > 0.0 { d.y / len } else { 0.0 };
+        if y < 0.0 {
+            self.ground.into()
+        } else {
+            Vec3A::from(self.horizon).lerp(self.zenith.into(), y.sqrt())
+        }
+    }
+}
+
+/// The lights the kernel shades with, compiled from light entities.
+#[derive(Clone, Debug, Default, Resource)]
+pub struct LightSet {
+    /// Directional lights, normalised directions.
+    pub directional: Vec<DirectionalLight>,
+    /// The sky, if any (black otherwise).
+    pub sky: Option<SkyLight>,
+}
+
+impl LightSet {
+    /// Radiance of the environment seen along `d`.
+    #[inline]
+    pub fn environment(&self, d: Vec3A) -> Vec3A {
+        self.sky.map_or(Vec3A::ZERO, |s| s.radiance(d))
+    }
+}

@@ -1,0 +1,142 @@
+//! Triangle meshes in structure-of-arrays form.
+
+use crate::math::Aabb;
+use glam::{Vec2, Vec3, Vec3A};
+
+/// An indexed triangle mesh, one array per attribute.
+///
+/// `normals` and `uvs` are either empty or one per position. `shaders[i]` is the
+/// [`ShaderId`](crate::shading::ShaderId) value of triangle `i`.
+#[derive(Clone, Debug, Default, PartialEq)]
+pub struct TriangleMesh {
+    /// Vertex positions in object space.
+    pub positions: Vec<Vec3>,
+    /// Unit vertex normals, or empty (flat shading).
+    pub normals: Vec<Vec3>,
+    /// Texture coordinates (glTF convention: (0, 0) is the image's top-left), or empty.
+    pub uvs: Vec<Vec2>,
+    /// Vertex indices of each triangle.
+    pub indices: Vec<[u32; 3]>,
+    /// Shader of each triangle.
+    pub shaders: Vec<u32>,
+}
+
+/// Why a mesh cannot be used.
+#[derive(Clone, Debug, PartialEq, thiserror::Error)]
+pub enum MeshError {
+    /// A triangle names a vertex that does not exist.
+    #[error("triangle {triangle} uses vertex {index}, but the mesh has {vertices} vertices")]
+    IndexOutOfRange {
+        /// Offending triangle.
+        triangle: usize,
+        /// The bad index.
+        index: u32,
+        /// Vertex count.
+        vertices: usize,
+    },
+    /// An attribute array has the wrong length.
+    #[error("{attribute} has {found} entries, expected {expected}")]
+    AttributeLength {
+        /// Attribute name.
+        attribute: &'static str,
+        /// Its length.
+        found: usize,
+        /// The required length.
+        expected: usize,
+    },
+}
+
+impl TriangleMesh {
+    /// Number of triangles.
+    pub fn triangle_count(&self) -> usize {
+        self.indices.len()
+    }
+
+    /// Checks indices and attribute lengths.
+    pub fn check(&self) -> Result<(), MeshError> {
+        let v = self.positions.len();
+        for (attribute, found) in [("normals", self.normals.len()), ("uvs", self.uvs.len())] {
+            if found != 0 && found != v {
+                return Err(MeshError::AttributeLength {
+                    attribute,
+                    found,
+                    expected: v,
+                });
+            }
+        }
+        if self.shaders.len() != self.indices.len() {
+            return Err(MeshError::AttributeLength {
+                attribute: "shaders",
+                found: self.shaders.len(),
+                expected: self.indices.len(),
+            });
+        }
+        for (triangle, tri) in self.indices.iter().enumerate() {
+            if let Some(&index) = tri.iter().find(|&&i| i as usize >= v) {
+                return Err(MeshError::IndexOutOfRange {
+                    triangle,
+                    index,
+                    vertices: v,
+                });
+            }
+        }
+        Ok(())
+    }
+
+    /// The three corners of triangle `i`.
+    #[inline]
+    pub fn triangle(&self, i: usize) -> [Vec3A; 3] {
+        let [a, b, c] = self.indices[i];
+        [
+            self.positions[a as usize].into(),
+            self.positions[b as usize].into(),
+            self.positions[c as usize].into(),
+        ]
+    }
+
+    /// The box of triangle `i`; empty when a corner is not finite (such a triangle can
+    /// never be hit, and min/max would silently drop a NaN).
+    pub fn triangle_bounds(&self, i: usize) -> Aabb {
+        let corners = self.triangle(i);
+        if corners.iter().all(|c| c.is_finite()) {
+            Aabb::from_points(corners)
+        } else {
+            Aabb::EMPTY
+        }
+    }
+
+    /// The box of the whole mesh.
+    pub fn bounds(&self) -> Aabb {
+        Aabb::from_points(self.positions.iter().map(|&p| p.into()))
+    }
+
+    /// Appends `other`, shifting its indices.
+    pub fn append(&mut self, other: &TriangleMesh) {
+        let base = self.positions.len() as u32;
+        let had_normals = !self.normals.is_empty() || self.positions.is_empty();
+        let had_uvs = !self.uvs.is_empty() || self.positions.is_empty();
+        self.positions.extend_from_slice(&other.positions);
+        if had_normals && !other.normals.is_empty() {
+            self.normals.extend_from_slice(&other.normals);
+        } else {
+            self.normals.clear();
+        }
+        if had_uvs && !other.uvs.is_empty() {
+            self.uvs.extend_from_slice(&other.uvs);
+        } else {
+            self.uvs.clear();
+        }
+        self.indices
+            .extend(other.indices.iter().map(|t| t.map(|i| i + base)));
+        self.shaders.extend_from_slice(&other.shaders);
+    }
+
+    /// Heap bytes held.
+    pub fn memory_bytes(&self) -> usize {
+        self.positions.capacity() * 12
+            + self.normals.capacity() * 12
+            + self.uvs.capacity() * 8
+            + self.indices.capacity() * 12
+            + self.shaders.capacity() * 4
+    }
+}

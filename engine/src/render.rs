@@ -1,0 +1,301 @@
+//! The render kernel: a pure function of flat scene data, camera, parameters, tile and
+//! frame index. The schedule, benchmarks, tests and (later) MPI workers all call it.
+//!
+//! Shading in this slice: Lambertian surfaces lit by directional lights (one shadow ray
+//! each) and by the sky (cosine-weighted shadow rays). Hit filters run the alpha test in
+//! place during traversal, for camera and shadow rays alike.
+
+use crate::bvh::TraversalStats;
+use crate::camera::{Camera, CameraView};
+use crate::film::{FrameBuffer, Tile, TileResult};
+use crate::geometry::GeometryLibrary;
+use crate::light::LightSet;
+use crate::math::{ErrorPoint, Ray};
+use crate::sampling::{SampleKey, cosine_hemisphere, orthonormal_basis};
+use crate::shading::{Shader, ShaderTable};
+use crate::tlas::{Candidate, Hit, TopLevel};
+use crate::triangle::hit_point;
+use glam::{Vec2, Vec3, Vec3A};
+use rayon::prelude::*;
+
+/// Borrowed flat data the kernel reads: nothing here knows about entities.
+#[derive(Clone, Copy)]
+pub struct RenderScene<'a> {
+    /// Meshes and their BLASes.
+    pub geometry: &'a GeometryLibrary,
+    /// The TLAS.
+    pub top_level: &'a TopLevel,
+    /// Shaders by id.
+    pub shaders: &'a ShaderTable,
+    /// Lights.
+    pub lights: &'a LightSet,
+}
+
+/// Per-frame sampling settings.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct RenderParams {
+    /// Camera samples per pixel.
+    pub samples_per_pixel: u32,
+    /// Sky shadow rays per camera hit.
+    pub sky_samples: u32,
+    /// Seed of every random number.
+    pub seed: u64,
+    /// Tile edge in pixels.
+    pub tile_size: u32,
+}
+
+impl Default for RenderParams {
+    fn default() -> Self {
+        Self {
+            samples_per_pixel: 1,
+            sky_samples: 2,
+            seed: 0,
+            tile_size: 16,
+        }
+    }
+}
+
+impl RenderParams {
+    /// The sampling settings a camera asks for.
+    pub fn for_camera(camera: &Camera, seed: u64) -> Self {
+        Self {
+            samples_per_pixel: camera.samples_per_pixel.max(1),
+            sky_samples: camera.sky_samples,
+            seed,
+            ..Default::default()
+        }
+    }
+}
+
+/// A surface point reconstructed from a hit, in world space.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct SurfacePoint {
+    /// Position with its error bound.
+    pub point: ErrorPoint,
+    /// Unit geometric normal, facing the incoming ray.
+    pub geometric_normal: Vec3A,
+    /// Unit shading normal, in the same hemisphere as the geometric one.
+    pub shading_normal: Vec3A,
+    /// Texture coordinates.
+    pub uv: Vec2,
+    /// The triangle's shader id.
+    pub shader: u32,
+}
+
+/// First random dimension used by sky sampling (0–1 pixel jitter, 2–3 lens).
+const SKY_DIMENSION: u32 = 4;
+
+impl<'a> RenderScene<'a> {
+    #[inline]
+    fn shader_of(&self, candidate: &Candidate) -> &'a Shader {
+        let mesh = &self.geometry.geometries[candidate.geometry.0 as usize].mesh;
+        self.shaders.get(mesh.shaders[candidate.triangle as usize])
+    }
+
+    #[inline]
+    fn uv_of(&self, candidate: &Candidate) -> Vec2 {
+        let mesh = &self.geometry.geometries[candidate.geometry.0 as usize].mesh;
+        if mesh.uvs.is_empty() {
+            return Vec2::ZERO;
+        }
+        let [i0, i1, i2] = mesh.indices[candidate.triangle as usize];
+        let b = candidate.barycentrics;
+        mesh.uvs[i0 as usize] * b.x + mesh.uvs[i1 as usize] * b.y + mesh.uvs[i2 as usize] * b.z
+    }
+
+    /// The alpha test run inside traversal: false where the shader's mask has a hole.
+    #[inline]
+    fn passes_alpha(&self, candidate: &Candidate, stats: &mut TraversalStats) -> bool {
+        let shader = self.shader_of(candidate);
+        if !shader.is_alpha_masked() {
+            return true;
+        }
+        stats.filter_tests += 1;
+        let opaque = shader.is_opaque_at(self.uv_of(candidate));
+        stats.filter_rejections += u64::from(!opaque);
+        opaque
+    }
+
+    /// The closest opaque hit along `ray`.
+    #[inline]
+    pub fn closest(&self, ray: &Ray, stats: &mut TraversalStats) -> Option<Hit> {
+        if !self.shaders.any_alpha_masked() {
+            return self
+                .top_level
+                .intersect_closest(self.geometry, ray, stats, |_| true);
+        }
+        let mut alpha = TraversalStats::default();
+        let hit = self
+            .top_level
+            .intersect_closest(self.geometry, ray, stats, |c| {
+                self.passes_alpha(c, &mut alpha)
+            });
+        stats.add(&alpha);
+        hit
+    }
+
+    /// True when an opaque hit lies before `ray.t_max`.
+    #[inline]
+    pub fn occluded(&self, ray: &Ray, stats: &mut TraversalStats) -> bool {
+        if !self.shaders.any_alpha_masked() {
+            return self
+                .top_level
+                .intersect_any(self.geometry, ray, stats, |_| true);
+        }
+        let mut alpha = TraversalStats::default();
+        let hit = self
+            .top_level
+            .intersect_any(self.geometry, ray, stats, |c| {
+                self.passes_alpha(c, &mut alpha)
+            });
+        stats.add(&alpha);
+        hit
+    }
+
+    /// Rebuilds position (with error bound), normals and UV of a hit in world space.
+    pub fn surface(&self, hit: &Hit, incoming: Vec3A) -> SurfacePoint {
+        let record = self.top_level.record(hit.slot as usize);
+        let mesh = &self.geometry.geometries[record.geometry.0 as usize].mesh;
+        let triangle = hit.triangle as usize;
+        let [p0, p1, p2] = mesh.triangle(triangle);
+        let b = hit.barycentrics;
+        let point = hit_point(p0, p1, p2, b).transformed(&record.object_to_world);
+        // Normals transform by the inverse transpose; a negative determinant flips them
+        // consistently with the mirrored winding.
+        let normal_matrix = record.world_to_object.matrix3.transpose();
+        let mut geometric_normal = (normal_matrix * (p1 - p0).cross(p2 - p0))
+            .normalize_or(-incoming.normalize_or(Vec3A::Y));
+        if geometric_normal.dot(incoming) > 0.0 {
+            geometric_normal = -geometric_normal;
+        }
+        let [i0, i1, i2] = mesh.indices[triangle].map(|i| i as usize);
+        let mut shading_normal = if mesh.normals.is_empty() {
+            geometric_normal
+        } else {
+            let n = Vec3A::from(mesh.normals[i0]) * b.x
+                + Vec3A::from(mesh.normals[i1]) * b.y
+                + Vec3A::from(mesh.normals[i2]) * b.z;
+            (normal_matrix * n).normalize_or(geometric_normal)
+        };
+        if shading_normal.dot(geometric_normal) < 0.0 {
+            shading_normal = -shading_normal;
+        }
+        SurfacePoint {
+            point,
+            geometric_normal,
+            shading_normal,
+            uv: self.uv_of(hit),
+            shader: mesh.shaders[triangle],
+        }
+    }
+
+    /// Radiance arriving along `ray`: direct sun and sky on Lambertian surfaces.
+    pub fn radiance(
+        &self,
+        ray: &Ray,
+        key: &SampleKey,
+        sky_samples: u32,
+        stats: &mut TraversalStats,
+    ) -> Vec3A {
+        let Some(hit) = self.closest(ray, stats) else {
+            return self.lights.environment(ray.direction);
+        };
+        let surface = self.surface(&hit, ray.direction);
+        let albedo = Vec3A::from(self.shaders.get(surface.shader).albedo(surface.uv));
+        let (ng, ns) = (surface.geometric_normal, surface.shading_normal);
+        let mut radiance = Vec3A::ZERO;
+        for light in &self.lights.directional {
+            let l = Vec3A::from(light.direction);
+            let cos = ns.dot(l);
+            if cos <= 0.0 || ng.dot(l) <= 0.0 {
+                continue;
+            }
+            let shadow = Ray::new(surface.point.offset_origin(ng, l), l);
+            if !self.occluded(&shadow, stats) {
+                radiance +=
+                    albedo * Vec3A::from(light.irradiance) * (cos * std::f32::consts::FRAC_1_PI);
+            }
+        }
+        if let Some(sky) = &self.lights.sky {
+            let (t, b) = orthonormal_basis(ns);
+            for k in 0..sky_samples {
+                let local = cosine_hemisphere(key.get2(SKY_DIMENSION + 2 * k));
+                let d = t * local.x + b * local.y + ns * local.z;
+                if ng.dot(d) <= 0.0 {
+                    continue;
+                }
+                let shadow = Ray::new(surface.point.offset_origin(ng, d), d);
+                if !self.occluded(&shadow, stats) {
+                    // Cosine sampling cancels the cos/π of the Lambertian BRDF.
+                    radiance += albedo * sky.radiance(d) / sky_samples as f32;
+                }
+            }
+        }
+        radiance
+    }
+}
+
+/// Renders one tile of frame `frame`. Deterministic: depends only on its arguments.
+pub fn render_tile(
+    scene: &RenderScene,
+    view: &CameraView,
+    params: &RenderParams,
+    tile: Tile,
+    frame: u32,
+) -> TileResult {
+    let _span = tracing::trace_span!("render_tile", x = tile.x, y = tile.y).entered();
+    let mut result = TileResult {
+        tile,
+        sums: Vec::with_capacity(tile.pixel_count()),
+        counts: Vec::with_capacity(tile.pixel_count()),
+        rejected: 0,
+        stats: TraversalStats::default(),
+    };
+    for y in tile.y..tile.y + tile.height {
+        for x in tile.x..tile.x + tile.width {
+            let (mut sum, mut count) = (Vec3::ZERO, 0u32);
+            for sample in 0..params.samples_per_pixel {
+                let key = SampleKey::new(params.seed, x, y, frame, sample);
+                let film = Vec2::new(x as f32, y as f32) + key.get2(0);
+                let ray = view.ray(film, key.get2(2));
+                let radiance =
+                    Vec3::from(scene.radiance(&ray, &key, params.sky_samples, &mut result.stats));
+                // The NaN firewall: a bad sample is counted and dropped, never averaged.
+                if radiance.is_finite() {
+                    sum += radiance;
+                    count += 1;
+                } else {
+                    result.rejected += 1;
+                }
+            }
+            result.sums.push(sum);
+            result.counts.push(count);
+        }
+    }
+    result
+}
+
+/// Renders a whole frame, tiles in parallel on the current rayon pool; `on_tile` is
+/// called once per finished tile (progress reporting).
+pub fn render_frame(
+    scene: &RenderScene,
+    view: &CameraView,
+    params: &RenderParams,
+    frame: u32,
+    on_tile: &(dyn Fn(&Tile) + Sync),
+) -> FrameBuffer {
+    let tiles = Tile::grid(view.width(), view.height(), params.tile_size);
+    let results: Vec<TileResult> = tiles
+        .par_iter()
+        .map(|&tile| {
+            let result = render_tile(scene, view, params, tile, frame);
+            on_tile(&tile);
+            result
+        })
+        .collect();
+    let mut frame_buffer = FrameBuffer::new(view.width(), view.height(), frame);
+    for result in &results {
+        frame_buffer.write_tile(result);
+    }
+    frame_buffer
+}

@@ -1,0 +1,305 @@
+//! BVH and TLAS against brute force, and validation of every build preset, including
+//! degenerate inputs.
+
+mod common;
+
+use common::*;
+use glam::{Affine3A, Vec3, Vec3A};
+use proptest::prelude::*;
+use sylva_engine::bvh::{BuildParams, Bvh, TraversalStats};
+use sylva_engine::geometry::{Geometry, GeometryId, GeometryLibrary};
+use sylva_engine::math::{Aabb, Ray};
+use sylva_engine::mesh::TriangleMesh;
+use sylva_engine::tlas::{InstanceDesc, TopLevel};
+
+fn bounds_of(mesh: &TriangleMesh) -> Vec<Aabb> {
+    (0..mesh.triangle_count())
+        .map(|i| mesh.triangle_bounds(i))
+        .collect()
+}
+
+fn check_mesh_against_brute_force(mesh: TriangleMesh, rays: &[Ray], params: BuildParams) {
+    let bounds = bounds_of(&mesh);
+    let geometry = Geometry::new("random", mesh, params).unwrap();
+    geometry.bvh.validate(&bounds).unwrap();
+    let mut stats = TraversalStats::default();
+    for ray in rays {
+        let expected = brute_closest(&geometry.mesh, ray, |_| true);
+        let got = geometry.intersect_closest(ray, &mut stats, |_, _| true);
+        match (expected, got) {
+            (None, None) => {}
+            (Some((t, tri)), Some(h)) => {
+                assert_eq!(h.hit.t, t, "closest t differs for {ray:?}");
+                if h.triangle != tri {
+                    // Another triangle at exactly the same distance is an equally right answer.
+                    let [a, b, c] = geometry.mesh.triangle(h.triangle as usize);
+                    assert!(
+                        sylva_engine::triangle::WatertightRay::new(ray)
+                            .intersect(a, b, c, f32::INFINITY)
+                            .is_some_and(|x| x.t == t)
+                    );
+                }
+            }
+            (e, g) => panic!("brute force {e:?} but BVH {g:?} for {ray:?}"),
+        }
+        assert_eq!(
+            geometry.intersect_any(ray, &mut stats, |_, _| true),
+            expected.is_some(),
+            "any-hit differs for {ray:?}"
+        );
+        // A filter that rejects odd triangles must match brute force with the same filter.
+        let filtered = brute_closest(&geometry.mesh, ray, |t| t % 2 == 0).map(|h| h.0);
+        assert_eq!(
+            geometry
+                .intersect_closest(ray, &mut stats, |t, _| t % 2 == 0)
+                .map(|h| h.hit.t),
+            filtered
+        );
+        assert_eq!(
+            geometry.intersect_any(ray, &mut stats, |t, _| t % 2 == 0),
+            filtered.is_some()
+        );
+    }
+}
+
+#[test]
+fn blas_matches_brute_force_for_every_preset() {
+    for (name, params) in BuildParams::PRESETS {
+        let mut rng = Rng(17);
+        for (n, size) in [(1, 1.0), (7, 0.5), (300, 0.4), (5000, 0.1)] {
+            let mesh = random_mesh(&mut rng, n, 2.0, size);
+            let rays: Vec<Ray> = (0..2000).map(|_| random_ray(&mut rng, 3.0)).collect();
+            eprintln!("preset {name}, {n} triangles");
+            check_mesh_against_brute_force(mesh, &rays, params);
+        }
+    }
+}
+
+#[test]
+fn parallel_build_equals_sequential_build() {
+    let mut rng = Rng(5);
+    let mesh = random_mesh(&mut rng, 50_000, 10.0, 0.3);
+    let bounds = bounds_of(&mesh);
+    let parallel = Bvh::build(&bounds, BuildParams::BALANCED);
+    let sequential = rayon::ThreadPoolBuilder::new()
+        .num_threads(1)
+        .build()
+        .unwrap()
+        .install(|| {
+            Bvh::build(
+                &bounds,
+                BuildParams {
+                    parallel_threshold: usize::MAX,
+                    ..BuildParams::BALANCED
+                },
+            )
+        });
+    parallel.validate(&bounds).unwrap();
+    assert_eq!(parallel.prim_indices, sequential.prim_indices);
+    assert_eq!(parallel.nodes.len(), sequential.nodes.len());
+}
+
+#[test]
+fn validate_after_every_preset_on_degenerate_input() {
+    let mut rng = Rng(3);
+    let same_centroid = {
+        let mut m = TriangleMesh::default();
+        for i in 0..100_000u32 {
+            let d = rng.unit() * rng.range(0.01, 1.0);
+            m.positions.extend([Vec3::ZERO, d, -d]);
+            m.indices.push([3 * i, 3 * i + 1, 3 * i + 2]);
+            m.shaders.push(0);
+        }
+        m
+    };
+    let zero_area = {
+        let mut m = random_mesh(&mut rng, 200, 1.0, 0.5);
+        for (i, tri) in m.indices.iter_mut().enumerate() {
+            if i % 2 == 0 {
+                tri[2] = tri[1];
+            }
+        }
+        m
+    };
+    let mut one_point = TriangleMesh::default();
+    one_point.positions = vec![Vec3::ONE; 3];
+    one_point.indices = vec![[0, 1, 2]; 50];
+    one_point.shaders = vec![0; 50];
+    let mut with_nan = random_mesh(&mut rng, 100, 1.0, 0.5);
+    with_nan.positions[4] = Vec3::new(f32::NAN, 0.0, 0.0);
+    with_nan.positions[10] = Vec3::splat(f32::INFINITY);
+    let cases = [
+        ("empty", TriangleMesh::default()),
+        ("one triangle", random_mesh(&mut rng, 1, 1.0, 1.0)),
+        ("1e5 same centroid", same_centroid),
+        ("zero-area triangles", zero_area),
+        ("all in one point", one_point),
+        ("NaN and inf vertices", with_nan),
+    ];
+    for (name, params) in BuildParams::PRESETS {
+        for (case, mesh) in &cases {
+            let bounds = bounds_of(mesh);
+            let bvh = Bvh::build(&bounds, params);
+            let report = bvh
+                .validate(&bounds)
+                .unwrap_or_else(|e| panic!("{name} / {case}: {e}"));
+            assert!(
+                report.max_depth < sylva_engine::bvh::MAX_DEPTH,
+                "{name} / {case}"
+            );
+            if *case == "NaN and inf vertices" {
+                assert_eq!(
+                    bvh.prim_indices.len(),
+                    98,
+                    "the two triangles with non-finite corners are left out"
+                );
+            }
+        }
+    }
+    // The same-centroid mesh is still traversable and correct.
+    let geometry = Geometry::new("star", cases[2].1.clone(), BuildParams::BALANCED).unwrap();
+    let mut stats = TraversalStats::default();
+    for _ in 0..200 {
+        let ray = random_ray(&mut rng, 2.0);
+        let expected = brute_closest(&geometry.mesh, &ray, |_| true).map(|h| h.0);
+        assert_eq!(
+            geometry
+                .intersect_closest(&ray, &mut stats, |_, _| true)
+                .map(|h| h.hit.t),
+            expected
+        );
+    }
+}
+
+#[test]
+fn instance_of_an_empty_mesh_and_singular_transforms_are_harmless() {
+    let mut lib = GeometryLibrary::default();
+    let empty =
+        lib.add(Geometry::new("empty", TriangleMesh::default(), BuildParams::BALANCED).unwrap());
+    let mut rng = Rng(9);
+    let solid = lib.add(
+        Geometry::new(
+            "solid",
+            random_mesh(&mut rng, 50, 1.0, 0.5),
+            BuildParams::BALANCED,
+        )
+        .unwrap(),
+    );
+    let instances = vec![
+        InstanceDesc {
+            transform: Affine3A::IDENTITY,
+            geometry: empty,
+        },
+        InstanceDesc {
+            transform: Affine3A::from_scale(Vec3::new(1.0, 0.0, 1.0)),
+            geometry: solid,
+        },
+        InstanceDesc {
+            transform: Affine3A::from_translation(Vec3::NAN),
+            geometry: solid,
+        },
+        InstanceDesc {
+            transform: Affine3A::IDENTITY,
+            geometry: GeometryId(99),
+        },
+        InstanceDesc {
+            transform: Affine3A::IDENTITY,
+            geometry: solid,
+        },
+    ];
+    for (_, params) in BuildParams::PRESETS {
+        let tlas = TopLevel::build(&lib, &instances, params);
+        assert_eq!(tlas.len(), 1);
+        assert_eq!(tlas.skipped.singular, 2);
+        assert_eq!(tlas.skipped.unknown_geometry, 1);
+        let mut boxes = vec![Aabb::EMPTY; instances.len()];
+        for r in &tlas.instances {
+            boxes[r.id as usize] = lib
+                .get(r.geometry)
+                .unwrap()
+                .bounds()
+                .transformed(&r.object_to_world);
+        }
+        tlas.bvh.validate(&boxes).unwrap();
+    }
+    let tlas = TopLevel::build(&lib, &[], BuildParams::BALANCED);
+    let mut stats = TraversalStats::default();
+    assert!(
+        tlas.intersect_closest(&lib, &Ray::new(Vec3A::ZERO, Vec3A::X), &mut stats, |_| true)
+            .is_none()
+    );
+}
+
+fn check_instances_against_brute_force(
+    seed: u64,
+    geometries: usize,
+    instances: usize,
+    rays: usize,
+) {
+    let mut rng = Rng(seed);
+    let mut lib = GeometryLibrary::default();
+    for g in 0..geometries {
+        let n = 1 + (rng.next_u64() % 200) as usize;
+        lib.add(
+            Geometry::new(
+                format!("g{g}"),
+                random_mesh(&mut rng, n, 1.0, 0.4),
+                BuildParams::BALANCED,
+            )
+            .unwrap(),
+        );
+    }
+    let descs: Vec<InstanceDesc> = (0..instances)
+        .map(|_| InstanceDesc {
+            transform: random_transform(&mut rng, 20.0, (-0.5, 0.7)),
+            geometry: GeometryId((rng.next_u64() % geometries as u64) as u32),
+        })
+        .collect();
+    for (name, params) in BuildParams::PRESETS {
+        let tlas = TopLevel::build(&lib, &descs, params);
+        let mut stats = TraversalStats::default();
+        for _ in 0..rays {
+            let ray = random_ray(&mut rng, 25.0);
+            let expected = brute_closest_instances(&lib, &descs, &ray);
+            let got = tlas.intersect_closest(&lib, &ray, &mut stats, |_| true);
+            assert_eq!(
+                got.map(|h| h.t),
+                expected.map(|e| e.0),
+                "{name}: closest t for {ray:?}"
+            );
+            if let (Some(g), Some(e)) = (got, expected) {
+                assert!(g.instance == e.1 || g.t == e.0);
+            }
+            assert_eq!(
+                tlas.intersect_any(&lib, &ray, &mut stats, |_| true),
+                expected.is_some(),
+                "{name}: any-hit"
+            );
+        }
+        assert_eq!(stats.closest_rays, rays as u64);
+    }
+}
+
+#[test]
+fn tlas_matches_brute_force_on_random_instance_sets() {
+    check_instances_against_brute_force(1, 4, 300, 3000);
+    check_instances_against_brute_force(2, 1, 1, 500);
+    check_instances_against_brute_force(3, 8, 1000, 300);
+}
+
+proptest! {
+    #![proptest_config(ProptestConfig { cases: 64, .. ProptestConfig::default() })]
+
+    #[test]
+    fn proptest_blas_closest_equals_brute_force(seed in any::<u64>(), n in 1usize..400, size in 0.01f32..2.0, preset in 0usize..3) {
+        let mut rng = Rng(seed);
+        let mesh = random_mesh(&mut rng, n, 2.0, size);
+        let rays: Vec<Ray> = (0..200).map(|_| random_ray(&mut rng, 3.0)).collect();
+        check_mesh_against_brute_force(mesh, &rays, BuildParams::PRESETS[preset].1);
+    }
+
+    #[test]
+    fn proptest_tlas_closest_equals_brute_force(seed in any::<u64>(), geometries in 1usize..5, instances in 0usize..120) {
+        check_instances_against_brute_force(seed, geometries, instances, 150);
+    }
+}

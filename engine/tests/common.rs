@@ -1,0 +1,121 @@
+//! Shared helpers for the engine's integration tests: a seeded generator, random
+//! meshes and rays, and brute-force oracles.
+
+#![allow(dead_code, missing_docs)]
+
+use glam::{Affine3A, Quat, Vec3, Vec3A};
+use sylva_engine::geometry::GeometryLibrary;
+use sylva_engine::math::Ray;
+use sylva_engine::mesh::TriangleMesh;
+use sylva_engine::sampling::mix64;
+use sylva_engine::tlas::InstanceDesc;
+use sylva_engine::triangle::WatertightRay;
+
+/// A tiny deterministic generator for tests.
+pub struct Rng(pub u64);
+
+impl Rng {
+    pub fn next_u64(&mut self) -> u64 {
+        self.0 = self.0.wrapping_add(0x9e37_79b9_7f4a_7c15);
+        mix64(self.0)
+    }
+    pub fn f32(&mut self) -> f32 {
+        (self.next_u64() >> 40) as f32 / (1u64 << 24) as f32
+    }
+    pub fn range(&mut self, lo: f32, hi: f32) -> f32 {
+        lo + (hi - lo) * self.f32()
+    }
+    pub fn vec3(&mut self, lo: f32, hi: f32) -> Vec3 {
+        Vec3::new(self.range(lo, hi), self.range(lo, hi), self.range(lo, hi))
+    }
+    pub fn unit(&mut self) -> Vec3 {
+        loop {
+            let v = self.vec3(-1.0, 1.0);
+            let l = v.length();
+            if l > 1e-3 && l <= 1.0 {
+                return v / l;
+            }
+        }
+    }
+}
+
+/// `n` random triangles of size up to `size` inside a cube of half-width `extent`.
+pub fn random_mesh(rng: &mut Rng, n: usize, extent: f32, size: f32) -> TriangleMesh {
+    let mut mesh = TriangleMesh::default();
+    for i in 0..n {
+        let c = rng.vec3(-extent, extent);
+        for _ in 0..3 {
+            mesh.positions.push(c + rng.vec3(-size, size));
+        }
+        let b = 3 * i as u32;
+        mesh.indices.push([b, b + 1, b + 2]);
+        mesh.shaders.push(0);
+    }
+    mesh
+}
+
+/// A random ray starting inside a cube of half-width `extent`.
+pub fn random_ray(rng: &mut Rng, extent: f32) -> Ray {
+    Ray::new(rng.vec3(-extent, extent).into(), rng.unit().into())
+}
+
+/// Closest (t, triangle) over all triangles, testing each with the engine's own
+/// watertight test.
+pub fn brute_closest(
+    mesh: &TriangleMesh,
+    ray: &Ray,
+    accept: impl Fn(u32) -> bool,
+) -> Option<(f32, u32)> {
+    let w = WatertightRay::new(ray);
+    let mut best: Option<(f32, u32)> = None;
+    for i in 0..mesh.triangle_count() {
+        let [a, b, c] = mesh.triangle(i);
+        let t_max = best.map_or(ray.t_max, |b| b.0);
+        if let Some(h) = w.intersect(a, b, c, t_max) {
+            if accept(i as u32) {
+                best = Some((h.t, i as u32));
+            }
+        }
+    }
+    best
+}
+
+/// Closest (t, instance, triangle) over all instances and triangles.
+pub fn brute_closest_instances(
+    lib: &GeometryLibrary,
+    instances: &[InstanceDesc],
+    ray: &Ray,
+) -> Option<(f32, u32, u32)> {
+    let mut best: Option<(f32, u32, u32)> = None;
+    for (i, inst) in instances.iter().enumerate() {
+        if inst.transform.matrix3.determinant() == 0.0 {
+            continue;
+        }
+        let local = Ray {
+            t_max: best.map_or(ray.t_max, |b| b.0),
+            ..ray.transformed(&inst.transform.inverse())
+        };
+        let mesh = &lib.geometries[inst.geometry.0 as usize].mesh;
+        if let Some((t, tri)) = brute_closest(mesh, &local, |_| true) {
+            best = Some((t, i as u32, tri));
+        }
+    }
+    best
+}
+
+/// A random instance transform with scales in `[10^lo, 10^hi]`.
+pub fn random_transform(rng: &mut Rng, extent: f32, log_scale: (f32, f32)) -> Affine3A {
+    let s = 10f32.powf(rng.range(log_scale.0, log_scale.1));
+    let rot = Quat::from_scaled_axis(rng.unit() * rng.range(0.0, 3.1));
+    let scale = Vec3::new(
+        s * rng.range(0.5, 2.0),
+        s * rng.range(0.5, 2.0),
+        s * rng.range(0.5, 2.0),
+    );
+    Affine3A::from_scale_rotation_translation(scale, rot, rng.vec3(-extent, extent))
+}
+
+/// A point in a random direction from `Vec3A::ZERO` at distance `d`.
+pub fn on_sphere(rng: &mut Rng, d: f32) -> Vec3A {
+    Vec3A::from(rng.unit()) * d
+}

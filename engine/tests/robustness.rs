@@ -1,0 +1,210 @@
+//! Watertightness on closed meshes and freedom from self-intersection under extreme
+//! instance transforms.
+
+mod common;
+
+use common::*;
+use glam::{Affine3A, Vec3, Vec3A};
+use sylva_engine::bvh::{BuildParams, TraversalStats};
+use sylva_engine::geometry::{Geometry, GeometryId, GeometryLibrary};
+use sylva_engine::math::Ray;
+use sylva_engine::mesh::TriangleMesh;
+use sylva_engine::tlas::{InstanceDesc, TopLevel};
+use sylva_engine::triangle::hit_point;
+
+/// A closed UV sphere whose vertices are jittered radially (still closed: triangles
+/// share vertices by index).
+fn jittered_sphere(rng: &mut Rng, rings: u32, segments: u32) -> TriangleMesh {
+    let mut mesh = TriangleMesh::default();
+    mesh.positions.push(Vec3::Y);
+    for r in 1..rings {
+        let theta = std::f32::consts::PI * r as f32 / rings as f32;
+        for s in 0..segments {
+            let phi = std::f32::consts::TAU * s as f32 / segments as f32;
+            let radius = rng.range(0.9, 1.1);
+            mesh.positions.push(
+                Vec3::new(
+                    theta.sin() * phi.cos(),
+                    theta.cos(),
+                    theta.sin() * phi.sin(),
+                ) * radius,
+            );
+        }
+    }
+    mesh.positions.push(-Vec3::Y);
+    let bottom = mesh.positions.len() as u32 - 1;
+    let ring = |r: u32, s: u32| 1 + (r - 1) * segments + s % segments;
+    for s in 0..segments {
+        mesh.indices.push([0, ring(1, s + 1), ring(1, s)]);
+        mesh.indices
+            .push([bottom, ring(rings - 1, s), ring(rings - 1, s + 1)]);
+    }
+    for r in 1..rings - 1 {
+        for s in 0..segments {
+            let (a, b, c, d) = (
+                ring(r, s),
+                ring(r, s + 1),
+                ring(r + 1, s),
+                ring(r + 1, s + 1),
+            );
+            mesh.indices.push([a, b, d]);
+            mesh.indices.push([a, d, c]);
+        }
+    }
+    mesh.shaders = vec![0; mesh.indices.len()];
+    mesh
+}
+
+/// Rays from `origin` aimed exactly at every vertex and at points on every edge; returns
+/// (rays, leaks).
+fn count_leaks(
+    tlas: &TopLevel,
+    lib: &GeometryLibrary,
+    transform: &Affine3A,
+    origin: Vec3A,
+) -> (usize, usize) {
+    let mesh = &lib.geometries[0].mesh;
+    let mut targets: Vec<Vec3A> = mesh
+        .positions
+        .iter()
+        .map(|&p| transform.transform_point3a(p.into()))
+        .collect();
+    for tri in &mesh.indices {
+        for k in 0..3 {
+            let a = Vec3A::from(mesh.positions[tri[k] as usize]);
+            let b = Vec3A::from(mesh.positions[tri[(k + 1) % 3] as usize]);
+            for s in [0.5, 0.25, 1.0 / 3.0] {
+                targets.push(transform.transform_point3a(a.lerp(b, s)));
+            }
+        }
+    }
+    let mut stats = TraversalStats::default();
+    let leaks = targets
+        .iter()
+        .filter(|&&t| {
+            tlas.intersect_closest(lib, &Ray::new(origin, t - origin), &mut stats, |_| true)
+                .is_none()
+        })
+        .count();
+    (targets.len(), leaks)
+}
+
+#[test]
+fn rays_at_shared_edges_and_vertices_never_leak() {
+    let mut rng = Rng(11);
+    let mut lib = GeometryLibrary::default();
+    lib.add(
+        Geometry::new(
+            "sphere",
+            jittered_sphere(&mut rng, 40, 64),
+            BuildParams::BALANCED,
+        )
+        .unwrap(),
+    );
+    let mut total = (0, 0);
+    for case in 0..6 {
+        let transform = if case == 0 {
+            Affine3A::IDENTITY
+        } else {
+            random_transform(&mut rng, 50.0, (-2.0, 2.0))
+        };
+        let tlas = TopLevel::build(
+            &lib,
+            &[InstanceDesc {
+                transform,
+                geometry: GeometryId(0),
+            }],
+            BuildParams::BALANCED,
+        );
+        // From the centre (inside: every ray must hit) and from outside points.
+        let centre = transform.transform_point3a(Vec3A::new(0.01, -0.02, 0.015));
+        let (n, leaks) = count_leaks(&tlas, &lib, &transform, centre);
+        total.0 += n;
+        total.1 += leaks;
+    }
+    eprintln!(
+        "watertightness: {} leaks out of {} edge/vertex rays",
+        total.1, total.0
+    );
+    assert_eq!(
+        total.1, 0,
+        "{} of {} rays leaked through shared edges or vertices",
+        total.1, total.0
+    );
+}
+
+#[test]
+fn spawned_rays_never_rehit_their_own_triangle() {
+    let mut rng = Rng(23);
+    let mut lib = GeometryLibrary::default();
+    lib.add(
+        Geometry::new(
+            "soup",
+            random_mesh(&mut rng, 400, 1.0, 0.6),
+            BuildParams::BALANCED,
+        )
+        .unwrap(),
+    );
+    lib.add(
+        Geometry::new(
+            "sphere",
+            jittered_sphere(&mut rng, 12, 16),
+            BuildParams::BALANCED,
+        )
+        .unwrap(),
+    );
+    let mut checked = 0;
+    let mut self_hits = 0;
+    for log_scale in [-3.0f32, -1.5, 0.0, 1.5, 3.0] {
+        let s = 10f32.powf(log_scale);
+        let descs: Vec<InstanceDesc> = (0..30)
+            .map(|i| InstanceDesc {
+                transform: random_transform(&mut rng, 8.0 * s, (log_scale - 0.2, log_scale + 0.2)),
+                geometry: GeometryId(i % 2),
+            })
+            .collect();
+        let tlas = TopLevel::build(&lib, &descs, BuildParams::BALANCED);
+        let mut stats = TraversalStats::default();
+        for _ in 0..3000 {
+            let target = descs[(rng.next_u64() % descs.len() as u64) as usize]
+                .transform
+                .translation;
+            let origin = Vec3A::from(rng.vec3(-12.0, 12.0)) * s;
+            let ray = Ray::new(
+                origin,
+                (target + Vec3A::from(rng.vec3(-0.5, 0.5)) * s - origin).normalize(),
+            );
+            let Some(hit) = tlas.intersect_closest(&lib, &ray, &mut stats, |_| true) else {
+                continue;
+            };
+            let record = tlas.record(hit.slot as usize);
+            let mesh = &lib.geometries[record.geometry.0 as usize].mesh;
+            let [p0, p1, p2] = mesh.triangle(hit.triangle as usize);
+            let point =
+                hit_point(p0, p1, p2, hit.barycentrics).transformed(&record.object_to_world);
+            let normal_matrix = record.world_to_object.matrix3.transpose();
+            let mut n = (normal_matrix * (p1 - p0).cross(p2 - p0)).normalize();
+            if !n.is_finite() {
+                continue;
+            }
+            if n.dot(ray.direction) > 0.0 {
+                n = -n;
+            }
+            // Leave on the side the ray came from, in a random direction of that hemisphere.
+            let mut d = Vec3A::from(rng.unit());
+            if d.dot(n) < 0.0 {
+                d = -d;
+            }
+            let spawned = Ray::new(point.offset_origin(n, d), d);
+            checked += 1;
+            if let Some(again) = tlas.intersect_closest(&lib, &spawned, &mut stats, |_| true) {
+                if again.slot == hit.slot && again.triangle == hit.triangle {
+                    self_hits += 1;
+                }
+            }
+        }
+    }
+    eprintln!("self-intersection: {self_hits} of {checked} spawned rays re-hit their triangle");
+    assert!(checked > 5000, "too few hits to test ({checked})");
+    assert_eq!(self_hits, 0);
+}
