@@ -1,1 +1,320 @@
-fn main() {}
+//! The `sylva` command line: render a scene to PNG/EXR, or print its statistics.
+
+use anyhow::{Result, bail};
+use clap::{Args, Parser, Subcommand};
+use indicatif::{ProgressBar, ProgressStyle};
+use std::path::{Path, PathBuf};
+use std::sync::Arc;
+use std::time::Instant;
+use sylva::engine::film::{ImageKind, Tile};
+use sylva::engine::tlas::{InstanceDesc, TopLevel};
+use sylva::prelude::*;
+use sylva::scenes::{SCENE_NAMES, SceneBuild};
+use tracing_subscriber::prelude::*;
+
+/// Sylva: a ray tracer for dense plant ecosystems.
+///
+/// Examples:
+///   sylva render --out meadow.png
+///   sylva render --width 1280 --height 720 --spp 16 --out meadow.exr
+///   sylva info --scene meadow
+#[derive(Parser, Debug)]
+#[command(name = "sylva", version, verbatim_doc_comment)]
+struct Cli {
+    #[command(subcommand)]
+    command: Command,
+}
+
+#[derive(Subcommand, Debug)]
+enum Command {
+    /// Render a scene to an image (.png tone-mapped sRGB, or .exr linear radiance).
+    Render(RenderArgs),
+    /// Print a scene's statistics: species, triangles, instances, memory, build times.
+    Info(SceneArgs),
+}
+
+#[derive(Args, Debug)]
+struct SceneArgs {
+    /// Built-in scene to use (available: meadow).
+    #[arg(long, default_value = "meadow")]
+    scene: String,
+    /// Seed of the scene's generation and of the sampler: same seed, same image.
+    #[arg(long, default_value_t = 0)]
+    seed: u64,
+    /// Worker threads for building and rendering (0 = one per core). The image does not
+    /// depend on it.
+    #[arg(long, default_value_t = 0, value_parser = clap::value_parser!(u16).range(0..=1024))]
+    threads: u16,
+}
+
+#[derive(Args, Debug)]
+struct RenderArgs {
+    #[command(flatten)]
+    scene: SceneArgs,
+    /// Image width in pixels.
+    #[arg(long, default_value_t = 640, value_parser = clap::value_parser!(u32).range(1..=16384))]
+    width: u32,
+    /// Image height in pixels.
+    #[arg(long, default_value_t = 480, value_parser = clap::value_parser!(u32).range(1..=16384))]
+    height: u32,
+    /// Camera samples per pixel.
+    #[arg(long, default_value_t = 4, value_parser = clap::value_parser!(u32).range(1..=65536))]
+    spp: u32,
+    /// Sky shadow rays per camera hit (0 = sun only).
+    #[arg(long, default_value_t = 2, value_parser = clap::value_parser!(u32).range(0..=1024))]
+    sky_samples: u32,
+    /// Exposure in stops, applied before tone mapping (PNG only).
+    #[arg(long, default_value_t = 0.0, allow_hyphen_values = true)]
+    exposure: f32,
+    /// Output image: .png or .exr.
+    #[arg(long, short, default_value = "sylva.png")]
+    out: PathBuf,
+    /// Write a Chrome trace (open in chrome://tracing or Perfetto) of every stage and tile.
+    #[arg(long)]
+    trace: Option<PathBuf>,
+    /// No progress bar or summary.
+    #[arg(long, short)]
+    quiet: bool,
+}
+
+fn main() {
+    let cli = Cli::parse();
+    let result = match cli.command {
+        Command::Render(args) => render(args),
+        Command::Info(args) => info(args),
+    };
+    if let Err(e) = result {
+        eprintln!("error: {e:#}");
+        std::process::exit(1);
+    }
+}
+
+/// Logs warnings (or `RUST_LOG`) to stderr; with `trace`, every span to a Chrome trace.
+fn init_tracing(trace: Option<&Path>) -> Option<tracing_chrome::FlushGuard> {
+    let filter = tracing_subscriber::EnvFilter::try_from_default_env()
+        .unwrap_or_else(|_| tracing_subscriber::EnvFilter::new("warn"));
+    let fmt = tracing_subscriber::fmt::layer()
+        .with_writer(std::io::stderr)
+        .with_filter(filter);
+    match trace {
+        Some(path) => {
+            let (chrome, guard) = tracing_chrome::ChromeLayerBuilder::new()
+                .file(path)
+                .include_args(true)
+                .build();
+            tracing_subscriber::registry().with(fmt).with(chrome).init();
+            Some(guard)
+        }
+        None => {
+            tracing_subscriber::registry().with(fmt).init();
+            None
+        }
+    }
+}
+
+fn check_scene_name(name: &str) -> Result<()> {
+    if !SCENE_NAMES.contains(&name) {
+        bail!(
+            "unknown scene '{name}' (available: {})",
+            SCENE_NAMES.join(", ")
+        );
+    }
+    Ok(())
+}
+
+fn check_output_path(path: &Path) -> Result<()> {
+    ImageKind::from_path(path)?;
+    let dir = path
+        .parent()
+        .filter(|d| !d.as_os_str().is_empty())
+        .unwrap_or(Path::new("."));
+    if !dir.is_dir() {
+        bail!(
+            "{}: the directory {} does not exist",
+            path.display(),
+            dir.display()
+        );
+    }
+    Ok(())
+}
+
+fn build(world: &mut World, args: &SceneArgs) -> Result<SceneBuild> {
+    check_scene_name(&args.scene)?;
+    init_render_world(world, args.threads as usize)
+        .map_err(|e| anyhow::anyhow!("could not start the worker threads: {e}"))?;
+    world.insert_resource(RenderSeed(args.seed));
+    let pool = world.resource::<RenderPool>().clone();
+    Ok(pool.install(|| build_scene(&args.scene, args.seed))?)
+}
+
+fn render(args: RenderArgs) -> Result<()> {
+    check_output_path(&args.out)?;
+    if !args.exposure.is_finite() {
+        bail!(
+            "--exposure must be a finite number of stops, got {}",
+            args.exposure
+        );
+    }
+    let _trace_guard = init_tracing(args.trace.as_deref());
+    let mut world = World::new();
+    let mut scene = build(&mut world, &args.scene)?;
+    scene.camera.width = args.width;
+    scene.camera.height = args.height;
+    scene.camera.samples_per_pixel = args.spp;
+    scene.camera.sky_samples = args.sky_samples;
+    scene.camera.exposure = args.exposure;
+    let stats = scene.stats();
+    let (generate_time, blas_time) = (scene.generate_time, scene.blas_time);
+    let spawned = spawn(&mut world, scene);
+    world.entity_mut(spawned.camera).insert(ImageOutput {
+        path: args.out.clone(),
+        after_frames: 1,
+    });
+
+    let tiles = Tile::grid(
+        args.width,
+        args.height,
+        sylva::engine::RenderParams::default().tile_size,
+    )
+    .len() as u64;
+    let bar = if args.quiet {
+        ProgressBar::hidden()
+    } else {
+        ProgressBar::new(tiles)
+    };
+    bar.set_style(
+        ProgressStyle::with_template(
+            "{spinner} rendering [{bar:40}] {pos}/{len} tiles, {elapsed_precise} (eta {eta})",
+        )
+        .expect("the template is valid")
+        .progress_chars("=> "),
+    );
+    let tick = bar.clone();
+    world.insert_resource(TileProgress(Some(Arc::new(move |_| tick.inc(1)))));
+
+    let start = Instant::now();
+    frame_schedule().run(&mut world);
+    let wall = start.elapsed();
+    bar.finish_and_clear();
+
+    for result in &world.resource::<OutputLog>().0 {
+        if let Err(e) = result {
+            bail!("{e}");
+        }
+    }
+    let film = world
+        .get::<Film>(spawned.camera)
+        .ok_or_else(|| anyhow::anyhow!("the camera has no film"))?;
+    let render_stats = world.resource::<RenderStats>();
+    let tlas = world.resource::<TopLevelState>();
+    let render_s = render_stats.last_render.as_secs_f64();
+    let rays = render_stats.last_frame.rays();
+    if film.rejected_samples() > 0 {
+        eprintln!(
+            "warning: {} NaN/Inf samples were dropped",
+            film.rejected_samples()
+        );
+    }
+    if !args.quiet {
+        println!(
+            "{}: {}x{} at {} spp -> {}\n  {} instances, {} instanced triangles ({} unique), BLAS build {:.2} s, TLAS build {:.1} ms, scene generation {:.2} s\n  render {:.2} s, {:.2} M rays/s ({} camera + {} shadow rays), total {:.2} s",
+            args.scene.scene,
+            args.width,
+            args.height,
+            args.spp,
+            args.out.display(),
+            group(stats.instances as u64),
+            group(stats.instanced_triangles),
+            group(stats.unique_triangles as u64),
+            blas_time.as_secs_f64(),
+            tlas.last_build.as_secs_f64() * 1e3,
+            generate_time.as_secs_f64(),
+            render_s,
+            rays as f64 / render_s.max(1e-9) / 1e6,
+            group(render_stats.last_frame.closest_rays),
+            group(render_stats.last_frame.any_rays),
+            wall.as_secs_f64(),
+        );
+    }
+    Ok(())
+}
+
+fn info(args: SceneArgs) -> Result<()> {
+    let _guard = init_tracing(None);
+    let mut world = World::new();
+    let scene = build(&mut world, &args)?;
+    let stats = scene.stats();
+    let pool = world.resource::<RenderPool>().clone();
+    let mut descs: Vec<InstanceDesc> = scene
+        .plants
+        .iter()
+        .map(|(g, t)| InstanceDesc {
+            transform: t.to_affine(),
+            geometry: *g,
+        })
+        .collect();
+    if let Some(terrain) = scene.terrain {
+        descs.push(InstanceDesc {
+            transform: glam::Affine3A::IDENTITY,
+            geometry: terrain,
+        });
+    }
+    let start = Instant::now();
+    let tlas = pool.install(|| TopLevel::build(&scene.library, &descs, Default::default()));
+    let tlas_time = start.elapsed();
+    println!("scene            {} (seed {})", scene.name, args.seed);
+    println!("species          {}", stats.species);
+    for s in &scene.species {
+        let count = scene
+            .plants
+            .iter()
+            .filter(|(g, _)| *g == s.geometry)
+            .count();
+        let tris = scene
+            .library
+            .get(s.geometry)
+            .map_or(0, |g| g.mesh.triangle_count());
+        println!(
+            "  {:<14} {:>9} triangles  {:>9} instances",
+            s.name,
+            group(tris as u64),
+            group(count as u64)
+        );
+    }
+    if let Some(t) = scene.terrain.and_then(|t| scene.library.get(t)) {
+        println!(
+            "terrain          {} triangles",
+            group(t.mesh.triangle_count() as u64)
+        );
+    }
+    println!("unique triangles {}", group(stats.unique_triangles as u64));
+    println!("instances        {}", group(stats.instances as u64));
+    println!("instanced tris   {}", group(stats.instanced_triangles));
+    println!(
+        "memory           {:.1} MB (geometry + BLAS {:.1} MB, TLAS {:.1} MB)",
+        (scene.library.memory_bytes() + tlas.memory_bytes()) as f64 / 1e6,
+        scene.library.memory_bytes() as f64 / 1e6,
+        tlas.memory_bytes() as f64 / 1e6
+    );
+    println!(
+        "build times      generation {:.2} s, BLAS {:.2} s, TLAS {:.1} ms ({} threads)",
+        scene.generate_time.as_secs_f64(),
+        scene.blas_time.as_secs_f64(),
+        tlas_time.as_secs_f64() * 1e3,
+        pool.threads()
+    );
+    Ok(())
+}
+
+/// `1234567` → `1,234,567`.
+fn group(n: u64) -> String {
+    let s = n.to_string();
+    let mut out = String::new();
+    for (i, c) in s.chars().enumerate() {
+        if i > 0 && (s.len() - i) % 3 == 0 {
+            out.push(',');
+        }
+        out.push(c);
+    }
+    out
+}

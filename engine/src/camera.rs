@@ -20,8 +20,15 @@ pub enum Lens {
     },
 }
 
-/// A camera: projection, resolution and sampling quality.
+/// A camera: projection, resolution and sampling quality. Its entity also carries a
+/// [`Transform`](crate::components::Transform), its own [`Film`](crate::film::Film) and
+/// the [`FrameBuffer`](crate::film::FrameBuffer) of its latest frame.
 #[derive(Component, Clone, Copy, Debug, PartialEq)]
+#[require(
+    crate::components::Transform,
+    crate::film::Film,
+    crate::film::FrameBuffer
+)]
 pub struct Camera {
     /// Image width in pixels.
     pub width: u32,

@@ -79,6 +79,12 @@ pub struct FrameBuffer {
     pub frame_index: u32,
 }
 
+impl Default for FrameBuffer {
+    fn default() -> Self {
+        Self::new(0, 0, 0)
+    }
+}
+
 impl FrameBuffer {
     /// An empty frame.
     pub fn new(width: u32, height: u32, frame_index: u32) -> Self {
@@ -128,6 +134,12 @@ pub struct Film {
     frames: u32,
     rejected: u64,
     resets: u64,
+}
+
+impl Default for Film {
+    fn default() -> Self {
+        Self::new(0, 0)
+    }
 }
 
 impl Film {

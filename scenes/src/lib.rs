@@ -1,1 +1,162 @@
-//! placeholder
+//! # sylva_scenes
+//!
+//! Builds worlds: procedural species, terrain, ecosystem layout, and the embedded default
+//! scene `meadow`. A [`SceneBuild`] is plain data (geometry with BLASes, shaders,
+//! placements, lights, camera); [`spawn`] turns it into entities and resources of a
+//! bevy `World`. Same seed, same scene.
+
+pub mod meadow;
+pub mod random;
+pub mod species;
+pub mod terrain;
+
+use bevy_ecs::prelude::*;
+use std::time::Duration;
+use sylva_engine::camera::Camera;
+use sylva_engine::components::{Instance, Transform};
+use sylva_engine::geometry::{GeometryId, GeometryLibrary};
+use sylva_engine::light::{DirectionalLight, SkyLight};
+use sylva_engine::mesh::MeshError;
+use sylva_engine::shading::Shader;
+use sylva_engine::tlas::InstanceRecord;
+
+/// Names of the built-in scenes.
+pub const SCENE_NAMES: &[&str] = &["meadow"];
+
+/// Why a scene could not be built.
+#[derive(Debug, thiserror::Error)]
+pub enum SceneError {
+    /// The name is not a built-in scene.
+    #[error("unknown scene '{name}' (available: {})", SCENE_NAMES.join(", "))]
+    UnknownScene {
+        /// The name given.
+        name: String,
+    },
+    /// A generated mesh is malformed (a bug in a generator).
+    #[error("scene '{scene}', mesh '{mesh}': {source}")]
+    Mesh {
+        /// Scene name.
+        scene: String,
+        /// Mesh name.
+        mesh: String,
+        /// The defect.
+        source: MeshError,
+    },
+}
+
+/// A plant species: a name and its mesh.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Species {
+    /// Display name.
+    pub name: String,
+    /// Its mesh in the library.
+    pub geometry: GeometryId,
+}
+
+/// A scene as plain data, ready to [`spawn`].
+#[derive(Clone, Debug)]
+pub struct SceneBuild {
+    /// Scene name.
+    pub name: String,
+    /// Every mesh with its BLAS.
+    pub library: GeometryLibrary,
+    /// The plant species (the terrain is not one).
+    pub species: Vec<Species>,
+    /// The terrain mesh, instanced once at the origin.
+    pub terrain: Option<GeometryId>,
+    /// Shaders (one entity each).
+    pub shaders: Vec<Shader>,
+    /// Plant placements (one entity each).
+    pub plants: Vec<(GeometryId, Transform)>,
+    /// The sun.
+    pub sun: Option<DirectionalLight>,
+    /// The sky.
+    pub sky: Option<SkyLight>,
+    /// The camera.
+    pub camera: Camera,
+    /// Where the camera stands.
+    pub camera_transform: Transform,
+    /// Time spent generating meshes and placements.
+    pub generate_time: Duration,
+    /// Time spent building BLASes.
+    pub blas_time: Duration,
+}
+
+/// Size figures of a scene.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct SceneStats {
+    /// Plant species.
+    pub species: usize,
+    /// Triangles stored once (all meshes, terrain included).
+    pub unique_triangles: usize,
+    /// Instances (plants plus the terrain).
+    pub instances: usize,
+    /// Triangles summed over every instance.
+    pub instanced_triangles: u64,
+    /// Bytes of geometry, BLASes and an estimate of the TLAS.
+    pub memory_bytes: usize,
+}
+
+impl SceneBuild {
+    /// Counts species, triangles, instances and memory.
+    pub fn stats(&self) -> SceneStats {
+        let tri = |g: GeometryId| self.library.get(g).map_or(0, |g| g.mesh.triangle_count()) as u64;
+        let instances = self.plants.len() + usize::from(self.terrain.is_some());
+        let instanced_triangles =
+            self.plants.iter().map(|(g, _)| tri(*g)).sum::<u64>() + self.terrain.map_or(0, tri);
+        // A TLAS holds one record per instance and about two nodes per leaf of four.
+        let tlas_bytes = instances * (std::mem::size_of::<InstanceRecord>() + 4 + 16);
+        SceneStats {
+            species: self.species.len(),
+            unique_triangles: self.library.triangle_count(),
+            instances,
+            instanced_triangles,
+            memory_bytes: self.library.memory_bytes() + tlas_bytes,
+        }
+    }
+}
+
+/// Builds a built-in scene by name.
+pub fn build_scene(name: &str, seed: u64) -> Result<SceneBuild, SceneError> {
+    match name {
+        "meadow" => meadow::build(seed, &meadow::MeadowParams::default()),
+        _ => Err(SceneError::UnknownScene { name: name.into() }),
+    }
+}
+
+/// Entities made by [`spawn`].
+#[derive(Clone, Debug, PartialEq)]
+pub struct SpawnedScene {
+    /// The camera.
+    pub camera: Entity,
+    /// The plants, in the order of `SceneBuild::plants`.
+    pub plants: Vec<Entity>,
+}
+
+/// Moves a scene into `world`: the geometry library becomes a resource; shaders, plants,
+/// the terrain, lights and the camera become entities.
+pub fn spawn(world: &mut World, scene: SceneBuild) -> SpawnedScene {
+    world.insert_resource(scene.library);
+    for shader in scene.shaders {
+        world.spawn(shader);
+    }
+    if let Some(terrain) = scene.terrain {
+        world.spawn((Transform::IDENTITY, Instance { geometry: terrain }));
+    }
+    let plants = world
+        .spawn_batch(
+            scene
+                .plants
+                .into_iter()
+                .map(|(geometry, t)| (t, Instance { geometry })),
+        )
+        .collect();
+    if let Some(sun) = scene.sun {
+        world.spawn(sun);
+    }
+    if let Some(sky) = scene.sky {
+        world.spawn(sky);
+    }
+    let camera = world.spawn((scene.camera, scene.camera_transform)).id();
+    SpawnedScene { camera, plants }
+}

@@ -1,1 +1,194 @@
-//! placeholder
+//! # sylva_systems
+//!
+//! The bevy_ecs side of Sylva: resources, the [`RenderSystems`] sets and the frame
+//! schedule. Each stage is its own system with a run condition, so a frame that needs
+//! no rebuild, no shader compile or no output does not pay for it:
+//!
+//! 1. `Animate` — reserved for wind sway (nothing runs there yet);
+//! 2. `Prepare` — [`rebuild_top_level`], [`compile_shaders`], [`compile_lights`], side by
+//!    side on the multi-threaded executor;
+//! 3. `Render` — [`render_tiles`], tiles in parallel on the one [`RenderPool`];
+//! 4. `Accumulate` — [`accumulate`] into each camera's `Film`;
+//! 5. `Output` — [`output`] writes requested images.
+//!
+//! Threads: all data-parallel work (tiles, BVH builds) runs on the rayon [`RenderPool`];
+//! bevy's task pool only runs the systems themselves, whose threads block while the pool
+//! works, so the cores are not oversubscribed.
+
+mod systems;
+
+pub use systems::*;
+
+use bevy_ecs::prelude::*;
+use bevy_ecs::schedule::{MultiThreadedExecutor, ScheduleLabel};
+use std::path::PathBuf;
+use std::sync::Arc;
+use std::time::Duration;
+use sylva_engine::bvh::{BuildParams, TraversalStats};
+use sylva_engine::film::Tile;
+use sylva_engine::geometry::GeometryLibrary;
+use sylva_engine::light::LightSet;
+use sylva_engine::shading::ShaderTable;
+use sylva_engine::tlas::TopLevel;
+
+/// The stages of a frame, run in this order.
+#[derive(SystemSet, Debug, Clone, Copy, PartialEq, Eq, Hash)]
+pub enum RenderSystems {
+    /// Rigid motion writes `Transform`s.
+    Animate,
+    /// Acceleration structures, shaders and lights are brought up to date.
+    Prepare,
+    /// Each camera renders a frame.
+    Render,
+    /// Frames are added to films.
+    Accumulate,
+    /// Images are written.
+    Output,
+}
+
+/// The label of the frame schedule.
+#[derive(ScheduleLabel, Debug, Clone, Copy, PartialEq, Eq, Hash)]
+pub struct Frame;
+
+/// The one thread pool for data-parallel work: render tiles and BVH builds.
+#[derive(Resource, Clone)]
+pub struct RenderPool(pub Arc<rayon::ThreadPool>);
+
+impl RenderPool {
+    /// A pool of `threads` workers named `sylva-worker-N` (0 = one per core).
+    pub fn new(threads: usize) -> Result<Self, rayon::ThreadPoolBuildError> {
+        let threads = if threads == 0 {
+            std::thread::available_parallelism().map_or(1, |n| n.get())
+        } else {
+            threads
+        };
+        let pool = rayon::ThreadPoolBuilder::new()
+            .num_threads(threads)
+            .thread_name(|i| format!("sylva-worker-{i}"))
+            .build()?;
+        Ok(Self(Arc::new(pool)))
+    }
+
+    /// Number of worker threads.
+    pub fn threads(&self) -> usize {
+        self.0.current_num_threads()
+    }
+
+    /// Runs `f` inside the pool.
+    pub fn install<R: Send>(&self, f: impl FnOnce() -> R + Send) -> R {
+        self.0.install(f)
+    }
+}
+
+/// BVH build settings for both levels.
+#[derive(Resource, Clone, Copy, Debug, Default, PartialEq)]
+pub struct BuildSettings {
+    /// Settings of the top level, rebuilt whenever instances change.
+    pub top_level: BuildParams,
+}
+
+/// The seed of every random number the renderer draws.
+#[derive(Resource, Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub struct RenderSeed(pub u64);
+
+/// Called once per finished tile, from a worker thread (progress bars, tracing).
+pub type TileCallback = Arc<dyn Fn(&Tile) + Send + Sync>;
+
+/// The optional per-tile callback.
+#[derive(Resource, Clone, Default)]
+pub struct TileProgress(pub Option<TileCallback>);
+
+/// What `rebuild_top_level` has done: counts, timing and the entity of each TLAS id.
+#[derive(Resource, Clone, Debug, Default)]
+pub struct TopLevelState {
+    /// Rebuilds since the world was set up.
+    pub rebuilds: u64,
+    /// Duration of the latest rebuild.
+    pub last_build: Duration,
+    /// `entities[id]` is the plant entity of TLAS instance id `id`.
+    pub entities: Vec<Entity>,
+}
+
+/// What `render_tiles` has done.
+#[derive(Resource, Clone, Debug, Default)]
+pub struct RenderStats {
+    /// Frames rendered since the world was set up (all cameras).
+    pub frames: u64,
+    /// Counters of the latest frame (all cameras).
+    pub last_frame: TraversalStats,
+    /// Wall time of the latest `render_tiles` run.
+    pub last_render: Duration,
+    /// Counters summed over every frame.
+    pub total: TraversalStats,
+    /// Wall time summed over every frame.
+    pub total_render: Duration,
+}
+
+/// Ask the `output` stage to write a camera's film once it holds `after_frames` frames.
+#[derive(Component, Clone, Debug, PartialEq)]
+pub struct ImageOutput {
+    /// `.png` or `.exr`.
+    pub path: PathBuf,
+    /// Write when the film has accumulated exactly this many frames.
+    pub after_frames: u32,
+}
+
+/// Results of the `output` stage, oldest first: the path written, or the error message.
+#[derive(Resource, Clone, Debug, Default)]
+pub struct OutputLog(pub Vec<Result<PathBuf, String>>);
+
+/// Inserts every resource the schedule needs (keeping those already present) and a
+/// render pool of `threads` workers (0 = one per core).
+pub fn init_render_world(
+    world: &mut World,
+    threads: usize,
+) -> Result<(), rayon::ThreadPoolBuildError> {
+    world.insert_resource(RenderPool::new(threads)?);
+    world.init_resource::<GeometryLibrary>();
+    world.init_resource::<TopLevel>();
+    world.init_resource::<ShaderTable>();
+    world.init_resource::<LightSet>();
+    world.init_resource::<BuildSettings>();
+    world.init_resource::<RenderSeed>();
+    world.init_resource::<TileProgress>();
+    world.init_resource::<TopLevelState>();
+    world.init_resource::<RenderStats>();
+    world.init_resource::<OutputLog>();
+    Ok(())
+}
+
+/// The frame schedule: every stage with its run condition, on the multi-threaded
+/// executor.
+pub fn frame_schedule() -> Schedule {
+    let mut schedule = Schedule::new(Frame);
+    schedule.set_executor(MultiThreadedExecutor::new());
+    schedule.configure_sets(
+        (
+            RenderSystems::Animate,
+            RenderSystems::Prepare,
+            RenderSystems::Render,
+            RenderSystems::Accumulate,
+            RenderSystems::Output,
+        )
+            .chain(),
+    );
+    schedule.add_systems((
+        rebuild_top_level
+            .run_if(instances_changed)
+            .in_set(RenderSystems::Prepare),
+        compile_shaders
+            .run_if(shaders_changed)
+            .in_set(RenderSystems::Prepare),
+        compile_lights
+            .run_if(lights_changed)
+            .in_set(RenderSystems::Prepare),
+        render_tiles
+            .run_if(any_with_component::<sylva_engine::camera::Camera>)
+            .in_set(RenderSystems::Render),
+        accumulate.in_set(RenderSystems::Accumulate),
+        output
+            .run_if(any_with_component::<ImageOutput>)
+            .in_set(RenderSystems::Output),
+    ));
+    schedule
+}

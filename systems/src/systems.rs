@@ -1,0 +1,221 @@
+//! The systems of the frame schedule and their run conditions.
+
+use crate::{
+    BuildSettings, ImageOutput, OutputLog, RenderPool, RenderSeed, RenderStats, TileProgress,
+    TopLevelState,
+};
+use bevy_ecs::prelude::*;
+use std::time::Instant;
+use sylva_engine::camera::{Camera, CameraView};
+use sylva_engine::components::{Hidden, Instance, Transform};
+use sylva_engine::film::{Film, FrameBuffer, Tile};
+use sylva_engine::geometry::GeometryLibrary;
+use sylva_engine::light::{DirectionalLight, LightSet, SkyLight};
+use sylva_engine::render::{RenderParams, RenderScene, render_frame};
+use sylva_engine::shading::{Shader, ShaderTable};
+use sylva_engine::tlas::{InstanceDesc, TopLevel};
+
+/// Run condition of [`rebuild_top_level`]: a plant was added, moved, re-pointed, hidden,
+/// shown or removed, or the geometry library changed.
+pub fn instances_changed(
+    changed: Query<
+        (),
+        (
+            With<Instance>,
+            Or<(Changed<Transform>, Changed<Instance>, Added<Hidden>)>,
+        ),
+    >,
+    mut removed_instances: RemovedComponents<Instance>,
+    mut removed_hidden: RemovedComponents<Hidden>,
+    library: Res<GeometryLibrary>,
+) -> bool {
+    // Drain both readers every time so old removals are not seen again next frame.
+    let removed = removed_instances.read().count() + removed_hidden.read().count();
+    removed > 0 || !changed.is_empty() || library.is_changed()
+}
+
+/// Rebuilds the TLAS from every visible plant, on the render pool.
+pub fn rebuild_top_level(
+    pool: Res<RenderPool>,
+    library: Res<GeometryLibrary>,
+    settings: Res<BuildSettings>,
+    plants: Query<(Entity, &Transform, &Instance), Without<Hidden>>,
+    mut top_level: ResMut<TopLevel>,
+    mut state: ResMut<TopLevelState>,
+) {
+    let _span = tracing::info_span!("rebuild_top_level").entered();
+    let start = Instant::now();
+    let (entities, descs): (Vec<Entity>, Vec<InstanceDesc>) = plants
+        .iter()
+        .map(|(e, t, i)| {
+            (
+                e,
+                InstanceDesc {
+                    transform: t.to_affine(),
+                    geometry: i.geometry,
+                },
+            )
+        })
+        .unzip();
+    let built = pool.install(|| TopLevel::build(&library, &descs, settings.top_level));
+    if built.skipped.singular + built.skipped.unknown_geometry > 0 {
+        tracing::warn!(
+            singular = built.skipped.singular,
+            unknown_geometry = built.skipped.unknown_geometry,
+            "instances left out of the top level"
+        );
+    }
+    *top_level = built;
+    state.entities = entities;
+    state.rebuilds += 1;
+    state.last_build = start.elapsed();
+}
+
+/// Run condition of [`compile_shaders`].
+pub fn shaders_changed(
+    changed: Query<(), Changed<Shader>>,
+    mut removed: RemovedComponents<Shader>,
+) -> bool {
+    removed.read().count() > 0 || !changed.is_empty()
+}
+
+/// Packs shader entities into the dense [`ShaderTable`].
+pub fn compile_shaders(shaders: Query<&Shader>, mut table: ResMut<ShaderTable>) {
+    let _span = tracing::info_span!("compile_shaders").entered();
+    let mut all: Vec<Shader> = shaders.iter().cloned().collect();
+    all.sort_by_key(|s| s.id);
+    *table = ShaderTable::new(all);
+}
+
+/// Run condition of [`compile_lights`].
+pub fn lights_changed(
+    suns: Query<(), Changed<DirectionalLight>>,
+    skies: Query<(), Changed<SkyLight>>,
+    mut removed_suns: RemovedComponents<DirectionalLight>,
+    mut removed_skies: RemovedComponents<SkyLight>,
+) -> bool {
+    let removed = removed_suns.read().count() + removed_skies.read().count();
+    removed > 0 || !suns.is_empty() || !skies.is_empty()
+}
+
+/// Gathers light entities into the [`LightSet`]; directions are normalised and lights
+/// with a zero or non-finite direction or irradiance are dropped with a warning.
+pub fn compile_lights(
+    suns: Query<&DirectionalLight>,
+    skies: Query<&SkyLight>,
+    mut lights: ResMut<LightSet>,
+) {
+    let _span = tracing::info_span!("compile_lights").entered();
+    let mut directional = Vec::new();
+    for light in &suns {
+        let direction = light.direction.normalize_or_zero();
+        if direction == glam::Vec3::ZERO
+            || !light.irradiance.is_finite()
+            || light.irradiance.min_element() < 0.0
+        {
+            tracing::warn!(
+                ?light,
+                "directional light ignored: zero direction or bad irradiance"
+            );
+            continue;
+        }
+        directional.push(DirectionalLight {
+            direction,
+            ..*light
+        });
+    }
+    let sky = skies
+        .iter()
+        .find(|s| s.zenith.is_finite() && s.horizon.is_finite() && s.ground.is_finite())
+        .copied();
+    if skies.iter().count() > 1 {
+        tracing::warn!("more than one sky: using the first valid one");
+    }
+    *lights = LightSet { directional, sky };
+}
+
+/// Renders one frame per camera, tiles in parallel on the render pool. The frame index
+/// is the film's frame count, or 0 — restarting accumulation — when the camera or the
+/// scene changed since the last frame.
+#[expect(
+    clippy::too_many_arguments,
+    reason = "a system's parameters are its data access"
+)]
+pub fn render_tiles(
+    pool: Res<RenderPool>,
+    library: Res<GeometryLibrary>,
+    top_level: Res<TopLevel>,
+    shaders: Res<ShaderTable>,
+    lights: Res<LightSet>,
+    seed: Res<RenderSeed>,
+    progress: Res<TileProgress>,
+    mut cameras: Query<(Ref<Camera>, Ref<Transform>, &Film, &mut FrameBuffer)>,
+    mut stats: ResMut<RenderStats>,
+) {
+    let _span = tracing::info_span!("render_tiles").entered();
+    let start = Instant::now();
+    let scene_changed = library.is_changed()
+        || top_level.is_changed()
+        || shaders.is_changed()
+        || lights.is_changed();
+    let scene = RenderScene {
+        geometry: &library,
+        top_level: &top_level,
+        shaders: &shaders,
+        lights: &lights,
+    };
+    let on_tile = |tile: &Tile| {
+        if let Some(callback) = &progress.0 {
+            callback(tile);
+        }
+    };
+    let mut frame_stats = sylva_engine::bvh::TraversalStats::default();
+    for (camera, transform, film, mut frame) in &mut cameras {
+        let restart = scene_changed
+            || camera.is_changed()
+            || transform.is_changed()
+            || film.width() != camera.width
+            || film.height() != camera.height;
+        let frame_index = if restart { 0 } else { film.frames() };
+        let view = CameraView::new(&camera, &transform.to_affine());
+        let params = RenderParams::for_camera(&camera, seed.0);
+        *frame = pool.install(|| render_frame(&scene, &view, &params, frame_index, &on_tile));
+        frame_stats.add(&frame.stats);
+    }
+    stats.frames += 1;
+    stats.last_frame = frame_stats;
+    stats.total.add(&frame_stats);
+    let elapsed = start.elapsed();
+    stats.last_render = elapsed;
+    stats.total_render += elapsed;
+}
+
+/// Adds each camera's new frame to its film (a frame with index 0 resets the film).
+pub fn accumulate(mut cameras: Query<(&FrameBuffer, &mut Film), Changed<FrameBuffer>>) {
+    for (frame, mut film) in &mut cameras {
+        if frame.width > 0 {
+            film.accumulate(frame);
+        }
+    }
+}
+
+/// Writes the films of cameras whose [`ImageOutput`] frame count has been reached.
+pub fn output(
+    cameras: Query<(&Camera, &Film, &ImageOutput), Changed<Film>>,
+    mut log: ResMut<OutputLog>,
+) {
+    for (camera, film, request) in &cameras {
+        if film.frames() != request.after_frames {
+            continue;
+        }
+        let _span = tracing::info_span!("output", path = %request.path.display()).entered();
+        let result = film
+            .write(&request.path, camera.exposure)
+            .map(|()| request.path.clone())
+            .map_err(|e| e.to_string());
+        if let Err(e) = &result {
+            tracing::error!("{e}");
+        }
+        log.0.push(result);
+    }
+}
