@@ -1,0 +1,246 @@
+//! Schedule tests: spawn a small world, run the frame schedule, assert on what ran.
+
+use bevy_ecs::prelude::*;
+use glam::{Vec2, Vec3};
+use std::collections::HashSet;
+use std::sync::{Arc, Mutex};
+use sylva_engine::bvh::BuildParams;
+use sylva_engine::camera::Camera;
+use sylva_engine::components::{Hidden, Instance, Transform};
+use sylva_engine::film::Film;
+use sylva_engine::geometry::{Geometry, GeometryLibrary};
+use sylva_engine::light::{DirectionalLight, SkyLight};
+use sylva_engine::mesh::TriangleMesh;
+use sylva_engine::shading::{Shader, ShaderId};
+use sylva_systems::*;
+
+fn quad() -> TriangleMesh {
+    TriangleMesh {
+        positions: vec![
+            Vec3::new(-1.0, 0.0, -1.0),
+            Vec3::new(1.0, 0.0, -1.0),
+            Vec3::new(1.0, 0.0, 1.0),
+            Vec3::new(-1.0, 0.0, 1.0),
+        ],
+        normals: vec![Vec3::Y; 4],
+        uvs: vec![Vec2::ZERO, Vec2::X, Vec2::ONE, Vec2::Y],
+        indices: vec![[0, 2, 1], [0, 3, 2]],
+        shaders: vec![0, 0],
+    }
+}
+
+struct TestWorld {
+    world: World,
+    schedule: Schedule,
+    plants: Vec<Entity>,
+    camera: Entity,
+}
+
+fn test_world(threads: usize) -> TestWorld {
+    let mut world = World::new();
+    init_render_world(&mut world, threads).unwrap();
+    let mut library = GeometryLibrary::default();
+    let ground = library.add(
+        Geometry::new(
+            "ground",
+            TriangleMesh {
+                positions: quad().positions.iter().map(|p| *p * 20.0).collect(),
+                ..quad()
+            },
+            BuildParams::BALANCED,
+        )
+        .unwrap(),
+    );
+    let leaf = library.add(Geometry::new("leaf", quad(), BuildParams::BALANCED).unwrap());
+    world.insert_resource(library);
+    world.spawn(Shader::color(ShaderId(0), Vec3::splat(0.6)));
+    world.spawn((Transform::IDENTITY, Instance { geometry: ground }));
+    let plants = (0..5)
+        .map(|i| {
+            let t = Transform::from_translation(Vec3::new(i as f32 * 2.5 - 5.0, 1.0, -3.0))
+                .with_rotation(glam::Quat::from_rotation_x(1.2));
+            world.spawn((t, Instance { geometry: leaf })).id()
+        })
+        .collect();
+    world.spawn(DirectionalLight {
+        direction: Vec3::new(0.3, 1.0, 0.2),
+        irradiance: Vec3::splat(3.0),
+    });
+    world.spawn(SkyLight::constant(Vec3::splat(0.5)));
+    let camera = world
+        .spawn((
+            Camera {
+                width: 48,
+                height: 32,
+                samples_per_pixel: 1,
+                sky_samples: 1,
+                ..Default::default()
+            },
+            Transform::looking_at(Vec3::new(0.0, 3.0, 8.0), Vec3::ZERO, Vec3::Y),
+        ))
+        .id();
+    TestWorld {
+        world,
+        schedule: frame_schedule(),
+        plants,
+        camera,
+    }
+}
+
+impl TestWorld {
+    fn run(&mut self) {
+        self.schedule.run(&mut self.world);
+    }
+    fn rebuilds(&self) -> u64 {
+        self.world.resource::<TopLevelState>().rebuilds
+    }
+    fn film(&self) -> &Film {
+        self.world.get::<Film>(self.camera).unwrap()
+    }
+}
+
+#[test]
+fn static_frames_rebuild_nothing_and_accumulate() {
+    let mut w = test_world(2);
+    w.run();
+    assert_eq!(w.rebuilds(), 1, "the first frame builds the top level");
+    assert_eq!(w.film().frames(), 1);
+    for frame in 2..=4 {
+        w.run();
+        assert_eq!(w.rebuilds(), 1, "a static frame must not rebuild");
+        assert_eq!(w.film().frames(), frame, "static frames accumulate");
+    }
+    assert_eq!(w.world.resource::<RenderStats>().frames, 4);
+}
+
+#[test]
+fn moving_one_plant_rebuilds_once_and_resets_accumulation() {
+    let mut w = test_world(2);
+    w.run();
+    w.run();
+    w.run();
+    assert_eq!(w.film().frames(), 3);
+    let resets = w.film().resets();
+    w.world
+        .get_mut::<Transform>(w.plants[2])
+        .unwrap()
+        .translation
+        .x += 0.5;
+    w.run();
+    assert_eq!(w.rebuilds(), 2, "moving one plant runs exactly one rebuild");
+    assert_eq!(w.film().frames(), 1, "accumulation restarted");
+    assert_eq!(w.film().resets(), resets + 1);
+    w.run();
+    assert_eq!(w.rebuilds(), 2);
+    assert_eq!(w.film().frames(), 2);
+}
+
+#[test]
+fn hiding_removing_and_camera_moves_are_noticed() {
+    let mut w = test_world(1);
+    w.run();
+    w.world.entity_mut(w.plants[0]).insert(Hidden);
+    w.run();
+    assert_eq!(
+        (w.rebuilds(), w.film().frames()),
+        (2, 1),
+        "hiding rebuilds and resets"
+    );
+    assert_eq!(
+        w.world.resource::<sylva_engine::tlas::TopLevel>().len(),
+        5,
+        "ground + 4 visible plants"
+    );
+    w.world.entity_mut(w.plants[0]).remove::<Hidden>();
+    w.run();
+    assert_eq!(
+        (
+            w.rebuilds(),
+            w.world.resource::<sylva_engine::tlas::TopLevel>().len()
+        ),
+        (3, 6)
+    );
+    w.world.despawn(w.plants[1]);
+    w.run();
+    assert_eq!(
+        (
+            w.rebuilds(),
+            w.world.resource::<sylva_engine::tlas::TopLevel>().len()
+        ),
+        (4, 5)
+    );
+    w.run();
+    assert_eq!(w.film().frames(), 2);
+    // The camera moving resets the film but rebuilds nothing.
+    w.world
+        .get_mut::<Transform>(w.camera)
+        .unwrap()
+        .translation
+        .y += 0.1;
+    w.run();
+    assert_eq!((w.rebuilds(), w.film().frames()), (4, 1));
+    // A shader edit recompiles shaders and resets, without a rebuild.
+    let mut q = w.world.query::<&mut Shader>();
+    q.single_mut(&mut w.world).unwrap().base_color = Vec3::splat(0.2);
+    w.run();
+    w.run();
+    assert_eq!((w.rebuilds(), w.film().frames()), (4, 2));
+}
+
+#[test]
+fn accumulated_frames_differ_from_a_single_frame() {
+    // Progressive frames draw new random numbers: two frames are not the same frame twice.
+    let mut w = test_world(2);
+    w.run();
+    let one = w.film().mean_rgb();
+    w.run();
+    let two = w.film().mean_rgb();
+    assert_ne!(one, two);
+}
+
+#[test]
+fn images_do_not_depend_on_the_thread_count() {
+    let mut images = Vec::new();
+    for threads in [1, 2, 4] {
+        let mut w = test_world(threads);
+        w.run();
+        w.run();
+        images.push(w.film().mean_rgb());
+    }
+    assert!(
+        images.iter().flatten().any(|p| p.iter().any(|&c| c > 0.0)),
+        "the image is not black"
+    );
+    assert_eq!(images[0], images[1]);
+    assert_eq!(images[0], images[2]);
+}
+
+#[test]
+fn data_parallel_work_runs_only_on_the_render_pool() {
+    // Every tile must run on a `sylva-worker-*` thread of the one pool, never on bevy's
+    // task pool threads, so the cores are shared by exactly `threads` busy workers.
+    let threads = 2;
+    let mut w = test_world(threads);
+    let seen: Arc<Mutex<HashSet<String>>> = Arc::default();
+    let record = seen.clone();
+    w.world
+        .insert_resource(TileProgress(Some(Arc::new(move |_| {
+            let name = std::thread::current()
+                .name()
+                .unwrap_or("<unnamed>")
+                .to_owned();
+            record.lock().unwrap().insert(name);
+        }))));
+    for _ in 0..3 {
+        w.run();
+    }
+    let seen = seen.lock().unwrap();
+    assert!(!seen.is_empty());
+    for name in seen.iter() {
+        assert!(
+            name.starts_with("sylva-worker-"),
+            "tile rendered on thread '{name}'"
+        );
+    }
+    assert!(seen.len() <= threads);
+}
