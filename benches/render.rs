@@ -1,1 +1,83 @@
-fn main() {}
+//! Ray throughput on the default scene at 640×480 (primary closest-hit, sun shadow
+//! any-hit) and the time of a full 4 spp frame, on a 2-thread pool.
+
+mod common;
+
+use common::BenchScene;
+use criterion::{Criterion, Throughput, criterion_group, criterion_main};
+use rayon::prelude::*;
+use std::time::Duration;
+use sylva::engine::bvh::TraversalStats;
+use sylva::engine::render::{RenderParams, render_frame};
+
+fn pool() -> rayon::ThreadPool {
+    rayon::ThreadPoolBuilder::new()
+        .num_threads(2)
+        .build()
+        .unwrap()
+}
+
+fn rays(c: &mut Criterion) {
+    let bench = BenchScene::meadow();
+    let pool = pool();
+    let scene = bench.scene();
+    let primary = bench.primary_rays();
+    let shadow = pool.install(|| bench.shadow_rays());
+    let mut group = c.benchmark_group("meadow_640x480_2_threads");
+    group
+        .sample_size(20)
+        .measurement_time(Duration::from_secs(8));
+    group.throughput(Throughput::Elements(primary.len() as u64));
+    group.bench_function("primary_closest_hit_rays", |b| {
+        b.iter(|| {
+            pool.install(|| {
+                primary
+                    .par_chunks(1024)
+                    .map(|chunk| {
+                        let mut stats = TraversalStats::default();
+                        chunk
+                            .iter()
+                            .filter(|r| scene.closest(r, &mut stats).is_some())
+                            .count()
+                    })
+                    .sum::<usize>()
+            })
+        })
+    });
+    group.throughput(Throughput::Elements(shadow.len() as u64));
+    group.bench_function("sun_shadow_any_hit_rays", |b| {
+        b.iter(|| {
+            pool.install(|| {
+                shadow
+                    .par_chunks(1024)
+                    .map(|chunk| {
+                        let mut stats = TraversalStats::default();
+                        chunk
+                            .iter()
+                            .filter(|r| scene.occluded(r, &mut stats))
+                            .count()
+                    })
+                    .sum::<usize>()
+            })
+        })
+    });
+    group.finish();
+
+    let mut group = c.benchmark_group("meadow_frame_640x480");
+    group
+        .sample_size(10)
+        .measurement_time(Duration::from_secs(20));
+    let params = RenderParams {
+        samples_per_pixel: 4,
+        sky_samples: 2,
+        seed: 0,
+        tile_size: 16,
+    };
+    group.bench_function("render_4spp_2_threads", |b| {
+        b.iter(|| pool.install(|| render_frame(&scene, &bench.view, &params, 0, &|_| {})))
+    });
+    group.finish();
+}
+
+criterion_group!(benches, rays);
+criterion_main!(benches);

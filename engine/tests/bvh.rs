@@ -303,3 +303,52 @@ proptest! {
         check_instances_against_brute_force(seed, geometries, instances, 150);
     }
 }
+
+#[test]
+fn validate_rejects_corrupted_trees() {
+    let mut rng = Rng(77);
+    let mesh = random_mesh(&mut rng, 500, 3.0, 0.3);
+    let bounds = bounds_of(&mesh);
+    let good = Bvh::build(&bounds, BuildParams::BALANCED);
+    good.validate(&bounds).unwrap();
+
+    let mut shrunk_wide = good.clone();
+    shrunk_wide.wide[1].max_x = shrunk_wide.wide[1].min_x;
+    assert!(
+        shrunk_wide.validate(&bounds).is_err(),
+        "a wide box too small to hold its primitives"
+    );
+
+    let mut duplicated = good.clone();
+    duplicated.prim_indices[1] = duplicated.prim_indices[0];
+    assert!(
+        duplicated.validate(&bounds).is_err(),
+        "a primitive referenced twice"
+    );
+
+    let mut shrunk_binary = good.clone();
+    let leaf = shrunk_binary
+        .nodes
+        .iter()
+        .position(|n| n.is_leaf())
+        .unwrap();
+    let n = shrunk_binary.nodes[leaf];
+    shrunk_binary.nodes[leaf] =
+        sylva_engine::bvh::BvhNode::leaf(Aabb::new(n.min(), n.min()), n.first(), n.count());
+    assert!(
+        shrunk_binary.validate(&bounds).is_err(),
+        "a binary leaf box too small"
+    );
+
+    let mut cycle = good.clone();
+    cycle.wide[0].children[0] = 0;
+    cycle.wide[0].counts[0] = 0;
+    assert!(
+        cycle.validate(&bounds).is_err(),
+        "a wide child pointing back at its parent"
+    );
+
+    let mut lost = good.clone();
+    lost.prim_indices.pop();
+    assert!(lost.validate(&bounds).is_err(), "a primitive left out");
+}

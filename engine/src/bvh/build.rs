@@ -128,8 +128,10 @@ impl Bvh {
         let builder = Builder { params };
         let nodes = builder.build_subtree(&mut refs, 0, bounds, 0);
         let prim_indices = refs.iter().map(|r| r.index).collect();
+        let wide = super::wide::collapse(&nodes);
         Bvh {
             nodes,
+            wide,
             prim_indices,
         }
     }
@@ -198,10 +200,7 @@ impl Builder {
                 if node.is_leaf() {
                     *node
                 } else {
-                    BvhNode {
-                        first: (base + node.first as usize - 1) as u32,
-                        ..*node
-                    }
+                    node.with_first((base + node.first() as usize - 1) as u32)
                 }
             };
             nodes.push(remap(&ln[0], base_left));

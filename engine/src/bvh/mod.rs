@@ -7,11 +7,13 @@ mod build;
 mod node;
 mod traverse;
 mod validate;
+mod wide;
 
 pub use build::BuildParams;
 pub use node::BvhNode;
 pub use traverse::{NodeRay, TraversalStats};
 pub use validate::BvhReport;
+pub use wide::WideNode;
 
 /// Traversal stack capacity; [`build`](Bvh::build) bounds the depth below it.
 pub const MAX_DEPTH: usize = 96;
@@ -20,8 +22,10 @@ pub const MAX_DEPTH: usize = 96;
 /// leaves refer to.
 #[derive(Clone, Debug, Default)]
 pub struct Bvh {
-    /// Nodes; empty when the BVH holds no primitive.
+    /// Binary nodes as built; empty when the BVH holds no primitive.
     pub nodes: Vec<BvhNode>,
+    /// The same tree collapsed to four children per node: what traversal walks.
+    pub wide: Vec<WideNode>,
     /// `prim_indices[slot]` is the caller's index of the primitive in leaf slot `slot`.
     /// Primitives with empty or non-finite boxes are left out.
     pub prim_indices: Vec<u32>,
@@ -35,7 +39,9 @@ impl Bvh {
 
     /// Bytes of heap memory held.
     pub fn memory_bytes(&self) -> usize {
-        self.nodes.capacity() * std::mem::size_of::<BvhNode>() + self.prim_indices.capacity() * 4
+        self.nodes.capacity() * std::mem::size_of::<BvhNode>()
+            + self.wide.capacity() * std::mem::size_of::<WideNode>()
+            + self.prim_indices.capacity() * 4
     }
 
     /// The box around everything (empty box when empty).

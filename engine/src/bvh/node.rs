@@ -1,9 +1,12 @@
-//! The BVH node: 32 bytes, two per cache line.
+//! The BVH node: 32 bytes, two per cache line, each half one aligned SIMD load.
 
 use crate::math::Aabb;
-use glam::Vec3A;
+use glam::{Vec3A, Vec4};
 
 /// One node of a binary BVH.
+///
+/// `lo.xyz` and `hi.xyz` are the box corners; the `w` lanes carry the bits of `first` and
+/// `count`, so a box test is two aligned 16-byte loads.
 ///
 /// Invariants (checked by [`super::Bvh::validate`]): an interior node (`count == 0`) has
 /// its two children at `first` and `first + 1`, both after itself; a leaf (`count > 0`)
@@ -12,51 +15,76 @@ use glam::Vec3A;
 #[derive(Clone, Copy, Debug, PartialEq)]
 #[repr(C, align(32))]
 pub struct BvhNode {
-    /// Lower corner of the node's box.
-    pub min: [f32; 3],
-    /// Interior: index of the left child (the right one follows). Leaf: first slot.
-    pub first: u32,
-    /// Upper corner of the node's box.
-    pub max: [f32; 3],
-    /// Number of primitive slots in a leaf; 0 marks an interior node.
-    pub count: u32,
+    /// Lower corner in xyz; `w` holds the bits of `first`.
+    lo: Vec4,
+    /// Upper corner in xyz; `w` holds the bits of `count`.
+    hi: Vec4,
 }
 
 const _: () = assert!(std::mem::size_of::<BvhNode>() == 32);
 
 impl BvhNode {
+    fn pack(bounds: Aabb, first: u32, count: u32) -> Self {
+        Self {
+            lo: bounds.min.extend(f32::from_bits(first)),
+            hi: bounds.max.extend(f32::from_bits(count)),
+        }
+    }
+
     /// A leaf over `count` slots starting at `first`.
     pub fn leaf(bounds: Aabb, first: u32, count: u32) -> Self {
-        Self {
-            min: bounds.min.to_array(),
-            first,
-            max: bounds.max.to_array(),
-            count,
-        }
+        Self::pack(bounds, first, count)
     }
 
     /// An interior node whose children sit at `first` and `first + 1`.
     pub fn interior(bounds: Aabb, first: u32) -> Self {
+        Self::pack(bounds, first, 0)
+    }
+
+    /// Interior: index of the left child (the right one follows). Leaf: first slot.
+    #[inline]
+    pub fn first(&self) -> u32 {
+        self.lo.w.to_bits()
+    }
+
+    /// Number of primitive slots in a leaf; 0 marks an interior node.
+    #[inline]
+    pub fn count(&self) -> u32 {
+        self.hi.w.to_bits()
+    }
+
+    /// This node with another `first` (used when splicing subtrees).
+    pub fn with_first(self, first: u32) -> Self {
         Self {
-            min: bounds.min.to_array(),
-            first,
-            max: bounds.max.to_array(),
-            count: 0,
+            lo: self.lo.truncate().extend(f32::from_bits(first)),
+            hi: self.hi,
         }
     }
 
     /// True for leaves.
     #[inline]
     pub fn is_leaf(&self) -> bool {
-        self.count > 0
+        self.count() > 0
+    }
+
+    /// Lower corner.
+    #[inline]
+    pub fn min(&self) -> Vec3A {
+        Vec3A::from_vec4(self.lo)
+    }
+
+    /// Upper corner.
+    #[inline]
+    pub fn max(&self) -> Vec3A {
+        Vec3A::from_vec4(self.hi)
     }
 
     /// The node's box.
     #[inline]
     pub fn bounds(&self) -> Aabb {
         Aabb {
-            min: Vec3A::from_array(self.min),
-            max: Vec3A::from_array(self.max),
+            min: self.min(),
+            max: self.max(),
         }
     }
 }

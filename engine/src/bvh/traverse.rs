@@ -2,9 +2,9 @@
 //! hit. The caller's closure tests one primitive slot, so alpha masks and instance
 //! transforms live outside the BVH.
 
-use super::{Bvh, BvhNode, MAX_DEPTH};
+use super::{Bvh, WideNode};
 use crate::math::{Ray, gamma};
-use glam::Vec3A;
+use glam::Vec4;
 
 /// Counters a traversal updates: cheap enough to leave on in release builds. Summed per
 /// tile, then per frame.
@@ -41,11 +41,11 @@ impl TraversalStats {
     }
 }
 
-/// A ray prepared for slab tests against node boxes.
+/// A ray prepared for slab tests against the four boxes of a [`WideNode`].
 #[derive(Clone, Copy, Debug)]
 pub struct NodeRay {
-    origin: Vec3A,
-    inv_dir: Vec3A,
+    origin: [Vec4; 3],
+    inv_dir: [Vec4; 3],
 }
 
 /// Widening of the far slab distance that makes the box test conservative (Ize 2013,
@@ -53,26 +53,91 @@ pub struct NodeRay {
 const FAR_SCALE: f32 = 1.0 + 2.0 * gamma(3);
 
 impl NodeRay {
-    /// Precomputes the reciprocal direction.
+    /// Splats origin and reciprocal direction across the four lanes.
     #[inline]
     pub fn new(ray: &Ray) -> Self {
+        let inv = ray.direction.recip();
         Self {
-            origin: ray.origin,
-            inv_dir: ray.direction.recip(),
+            origin: [
+                Vec4::splat(ray.origin.x),
+                Vec4::splat(ray.origin.y),
+                Vec4::splat(ray.origin.z),
+            ],
+            inv_dir: [Vec4::splat(inv.x), Vec4::splat(inv.y), Vec4::splat(inv.z)],
         }
     }
 
-    /// Entry distance into `node`'s box if the ray meets it before `t_max`, else infinity.
+    /// Entry distances of the four children and a bitmask of the lanes hit before
+    /// `t_max` (bit `i` for lane `i`).
     #[inline]
-    pub fn hit_node(&self, node: &BvhNode, t_max: f32) -> f32 {
-        let t0 = (Vec3A::from_array(node.min) - self.origin) * self.inv_dir;
-        let t1 = (Vec3A::from_array(node.max) - self.origin) * self.inv_dir;
-        let t_near = t0.min(t1).max_element().max(0.0);
-        let t_far = t0.max(t1).min_element() * FAR_SCALE;
-        if t_near <= t_far && t_near < t_max {
-            t_near
+    pub fn hit_children(&self, node: &WideNode, t_max: f32) -> (Vec4, u32) {
+        let [ox, oy, oz] = self.origin;
+        let [ix, iy, iz] = self.inv_dir;
+        let x0 = (node.min_x - ox) * ix;
+        let x1 = (node.max_x - ox) * ix;
+        let y0 = (node.min_y - oy) * iy;
+        let y1 = (node.max_y - oy) * iy;
+        let z0 = (node.min_z - oz) * iz;
+        let z1 = (node.max_z - oz) * iz;
+        let t_near = x0.min(x1).max(y0.min(y1)).max(z0.min(z1)).max(Vec4::ZERO);
+        let t_far = x0.max(x1).min(y0.max(y1)).min(z0.max(z1)) * FAR_SCALE;
+        let hit = t_near.cmple(t_far) & t_near.cmplt(Vec4::splat(t_max));
+        (t_near, hit.bitmask())
+    }
+}
+
+/// A pending subtree: a wide node (`count == 0`) or a leaf's slot range, with its entry
+/// distance.
+#[derive(Clone, Copy, Debug, Default)]
+struct Pending {
+    first: u32,
+    count: u32,
+    t: f32,
+}
+
+/// Entries kept inline; deeper trees spill to the heap. Zero-filling a stack sized for
+/// the worst case cost more than the traversal itself (every instance runs one).
+const INLINE_STACK: usize = 24;
+
+/// The traversal stack: a small inline array with a heap spill for deep trees.
+struct Stack {
+    inline: [Pending; INLINE_STACK],
+    len: usize,
+    spill: Vec<Pending>,
+}
+
+impl Stack {
+    #[inline(always)]
+    fn new(first: Pending) -> Self {
+        let mut inline = [Pending::default(); INLINE_STACK];
+        inline[0] = first;
+        Self {
+            inline,
+            len: 1,
+            spill: Vec::new(),
+        }
+    }
+
+    #[inline(always)]
+    fn push(&mut self, entry: Pending) {
+        if self.len < INLINE_STACK {
+            self.inline[self.len] = entry;
         } else {
-            f32::INFINITY
+            self.spill.push(entry);
+        }
+        self.len += 1;
+    }
+
+    #[inline(always)]
+    fn pop(&mut self) -> Option<Pending> {
+        if self.len == 0 {
+            return None;
+        }
+        self.len -= 1;
+        if self.len < INLINE_STACK {
+            Some(self.inline[self.len])
+        } else {
+            self.spill.pop()
         }
     }
 }
@@ -114,7 +179,7 @@ impl Bvh {
         found
     }
 
-    /// The shared loop: `visit(slot, t_max) -> (new t_max, stop)`.
+    /// The shared loop over the wide tree: `visit(slot, t_max) -> (new t_max, stop)`.
     #[inline(always)]
     fn traverse(
         &self,
@@ -122,24 +187,23 @@ impl Bvh {
         stats: &mut TraversalStats,
         mut visit: impl FnMut(usize, f32) -> (f32, bool),
     ) {
-        let Some(root) = self.nodes.first() else {
-            return;
-        };
-        let node_ray = NodeRay::new(ray);
-        let mut t_max = ray.t_max;
-        if node_ray.hit_node(root, t_max) == f32::INFINITY {
-            stats.nodes_visited += 1;
+        if self.wide.is_empty() {
             return;
         }
-        let mut stack = [(0u32, 0.0f32); MAX_DEPTH];
-        let mut sp = 0usize;
-        let mut current = 0usize;
-        loop {
-            let node = &self.nodes[current];
-            stats.nodes_visited += 1;
-            if node.is_leaf() {
-                let first = node.first as usize;
-                for slot in first..first + node.count as usize {
+        let node_ray = NodeRay::new(ray);
+        let mut t_max = ray.t_max;
+        let mut stack = Stack::new(Pending {
+            first: 0,
+            count: 0,
+            t: 0.0,
+        });
+        while let Some(entry) = stack.pop() {
+            if entry.t >= t_max {
+                continue;
+            }
+            if entry.count > 0 {
+                let first = entry.first as usize;
+                for slot in first..first + entry.count as usize {
                     stats.primitive_tests += 1;
                     let (t, stop) = visit(slot, t_max);
                     t_max = t;
@@ -147,35 +211,40 @@ impl Bvh {
                         return;
                     }
                 }
-            } else {
-                let left = node.first as usize;
-                let t_left = node_ray.hit_node(&self.nodes[left], t_max);
-                let t_right = node_ray.hit_node(&self.nodes[left + 1], t_max);
-                let (near, t_near, far, t_far) = if t_left <= t_right {
-                    (left, t_left, left + 1, t_right)
-                } else {
-                    (left + 1, t_right, left, t_left)
-                };
-                if t_near < f32::INFINITY {
-                    if t_far < f32::INFINITY {
-                        stack[sp] = (far as u32, t_far);
-                        sp += 1;
-                    }
-                    current = near;
-                    continue;
-                }
+                continue;
             }
-            // Pop the next node still closer than the closest hit so far.
-            loop {
-                if sp == 0 {
-                    return;
+            let node = &self.wide[entry.first as usize];
+            stats.nodes_visited += 1;
+            let (t, mut mask) = node_ray.hit_children(node, t_max);
+            let t = t.to_array();
+            let child = |lane: usize| Pending {
+                first: node.children[lane],
+                count: node.counts[lane],
+                t: t[lane],
+            };
+            if mask & mask.wrapping_sub(1) == 0 {
+                // Zero or one child hit: the common case needs no sorting.
+                if mask != 0 {
+                    stack.push(child(mask.trailing_zeros() as usize));
                 }
-                sp -= 1;
-                let (index, t_entry) = stack[sp];
-                if t_entry < t_max {
-                    current = index as usize;
-                    break;
+                continue;
+            }
+            // Push hit children farthest first, so the nearest is popped next.
+            let mut hits = [Pending::default(); 4];
+            let mut n = 0;
+            while mask != 0 {
+                let entry = child(mask.trailing_zeros() as usize);
+                mask &= mask - 1;
+                let mut i = n;
+                while i > 0 && hits[i - 1].t < entry.t {
+                    hits[i] = hits[i - 1];
+                    i -= 1;
                 }
+                hits[i] = entry;
+                n += 1;
+            }
+            for entry in &hits[..n] {
+                stack.push(*entry);
             }
         }
     }

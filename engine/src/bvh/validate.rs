@@ -22,7 +22,7 @@ impl Bvh {
     /// Checks that the tree is well formed for `prim_bounds` (the boxes it was built from):
     /// children inside the array and after their parent, every node reached once, every
     /// leaf slot owned by exactly one leaf, every valid primitive referenced exactly once,
-    /// boxes nested, depth below the traversal stack.
+    /// boxes nested, depth bounded — for the binary tree and for its 4-wide collapse.
     pub fn validate(&self, prim_bounds: &[Aabb]) -> Result<BvhReport, String> {
         let valid = |b: &Aabb| !b.is_empty() && b.min.is_finite() && b.max.is_finite();
         let mut expected: Vec<u32> = (0..prim_bounds.len() as u32)
@@ -69,7 +69,7 @@ impl Bvh {
             }
             let relative_area = bounds.surface_area() / root_area;
             if node.is_leaf() {
-                let (first, count) = (node.first as usize, node.count as usize);
+                let (first, count) = (node.first() as usize, node.count() as usize);
                 if first + count > self.prim_indices.len() {
                     return Err(format!(
                         "leaf {index} slots {first}..{} out of range",
@@ -93,7 +93,7 @@ impl Bvh {
                 report.max_leaf_size = report.max_leaf_size.max(count);
                 report.sah_cost += relative_area * count as f32;
             } else {
-                let left = node.first as usize;
+                let left = node.first() as usize;
                 if left <= index || left + 1 >= self.nodes.len() {
                     return Err(format!(
                         "interior node {index} has children at {left}, {} (of {})",
@@ -116,6 +116,79 @@ impl Bvh {
         if let Some(s) = seen_slot.iter().position(|s| !s) {
             return Err(format!("slot {s} belongs to no leaf"));
         }
+        self.validate_wide(prim_bounds)?;
         Ok(report)
+    }
+
+    /// The same checks on the 4-wide tree that traversal walks.
+    fn validate_wide(&self, prim_bounds: &[Aabb]) -> Result<(), String> {
+        if self.wide.is_empty() {
+            return if self.nodes.is_empty() {
+                Ok(())
+            } else {
+                Err("binary nodes but no wide nodes".into())
+            };
+        }
+        let mut seen_node = vec![false; self.wide.len()];
+        let mut seen_slot = vec![false; self.prim_indices.len()];
+        let mut stack = vec![(0usize, None::<Aabb>)];
+        while let Some((index, parent_box)) = stack.pop() {
+            if std::mem::replace(&mut seen_node[index], true) {
+                return Err(format!("wide node {index} reached twice"));
+            }
+            let node = &self.wide[index];
+            for lane in 0..4 {
+                if !node.is_used(lane) {
+                    if node.counts[lane] != 0 {
+                        return Err(format!(
+                            "wide node {index} lane {lane} is unused but has primitives"
+                        ));
+                    }
+                    continue;
+                }
+                let b = node.child_bounds(lane);
+                if b.is_empty() || !b.min.is_finite() || !b.max.is_finite() {
+                    return Err(format!(
+                        "wide node {index} lane {lane} has an empty or non-finite box"
+                    ));
+                }
+                if parent_box.is_some_and(|p| !p.contains(&b)) {
+                    return Err(format!(
+                        "wide node {index} lane {lane} sticks out of its parent's box"
+                    ));
+                }
+                let (first, count) = (node.children[lane] as usize, node.counts[lane] as usize);
+                if count > 0 {
+                    if first + count > self.prim_indices.len() {
+                        return Err(format!("wide node {index} lane {lane} slots out of range"));
+                    }
+                    for slot in first..first + count {
+                        if std::mem::replace(&mut seen_slot[slot], true) {
+                            return Err(format!("slot {slot} owned by two wide leaves"));
+                        }
+                        if !b.contains(&prim_bounds[self.prim_indices[slot] as usize]) {
+                            return Err(format!(
+                                "wide node {index} lane {lane} does not contain primitive {}",
+                                self.prim_indices[slot]
+                            ));
+                        }
+                    }
+                } else {
+                    if first <= index || first >= self.wide.len() {
+                        return Err(format!(
+                            "wide node {index} lane {lane} points to node {first}"
+                        ));
+                    }
+                    stack.push((first, Some(b)));
+                }
+            }
+        }
+        if let Some(i) = seen_node.iter().position(|s| !s) {
+            return Err(format!("wide node {i} is unreachable"));
+        }
+        if let Some(s) = seen_slot.iter().position(|s| !s) {
+            return Err(format!("slot {s} belongs to no wide leaf"));
+        }
+        Ok(())
     }
 }

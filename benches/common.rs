@@ -1,0 +1,99 @@
+//! Shared set-up for the benchmarks: the default scene, its TLAS, and ray batches.
+
+#![allow(dead_code)]
+
+use glam::{Vec2, Vec3A};
+use rayon::prelude::*;
+use sylva::engine::bvh::TraversalStats;
+use sylva::engine::camera::CameraView;
+use sylva::engine::geometry::GeometryLibrary;
+use sylva::engine::light::LightSet;
+use sylva::engine::math::Ray;
+use sylva::engine::render::RenderScene;
+use sylva::engine::shading::ShaderTable;
+use sylva::engine::tlas::{InstanceDesc, TopLevel};
+use sylva::scenes::SceneBuild;
+
+/// The default scene as flat render data, with its camera at 640×480.
+pub struct BenchScene {
+    pub build: SceneBuild,
+    pub top_level: TopLevel,
+    pub shaders: ShaderTable,
+    pub lights: LightSet,
+    pub view: CameraView,
+}
+
+impl BenchScene {
+    pub fn meadow() -> Self {
+        let build = sylva::scenes::build_scene("meadow", 0).unwrap();
+        let mut descs: Vec<InstanceDesc> = build
+            .plants
+            .iter()
+            .map(|(g, t)| InstanceDesc {
+                transform: t.to_affine(),
+                geometry: *g,
+            })
+            .collect();
+        descs.extend(build.terrain.map(|g| InstanceDesc {
+            transform: glam::Affine3A::IDENTITY,
+            geometry: g,
+        }));
+        let top_level = TopLevel::build(&build.library, &descs, Default::default());
+        let shaders = ShaderTable::new(build.shaders.clone());
+        let lights = LightSet {
+            directional: build.sun.into_iter().collect(),
+            sky: build.sky,
+        };
+        let view = CameraView::new(&build.camera, &build.camera_transform.to_affine());
+        Self {
+            build,
+            top_level,
+            shaders,
+            lights,
+            view,
+        }
+    }
+
+    pub fn library(&self) -> &GeometryLibrary {
+        &self.build.library
+    }
+
+    pub fn scene(&self) -> RenderScene<'_> {
+        RenderScene {
+            geometry: &self.build.library,
+            top_level: &self.top_level,
+            shaders: &self.shaders,
+            lights: &self.lights,
+        }
+    }
+
+    /// One primary ray through each pixel centre.
+    pub fn primary_rays(&self) -> Vec<Ray> {
+        let (w, h) = (self.view.width(), self.view.height());
+        (0..w * h)
+            .map(|i| {
+                self.view.ray(
+                    Vec2::new((i % w) as f32 + 0.5, (i / w) as f32 + 0.5),
+                    Vec2::ZERO,
+                )
+            })
+            .collect()
+    }
+
+    /// Sun shadow rays from every primary hit.
+    pub fn shadow_rays(&self) -> Vec<Ray> {
+        let scene = self.scene();
+        let sun = Vec3A::from(self.lights.directional[0].direction);
+        self.primary_rays()
+            .par_iter()
+            .filter_map(|ray| {
+                let hit = scene.closest(ray, &mut TraversalStats::default())?;
+                let s = scene.surface(&hit, ray.direction);
+                Some(Ray::new(
+                    s.point.offset_origin(s.geometric_normal, sun),
+                    sun,
+                ))
+            })
+            .collect()
+    }
+}

@@ -1,0 +1,131 @@
+//! The 4-wide BVH that traversal walks: the binary build collapsed so each node holds
+//! up to four children whose boxes are tested together, one SIMD lane each (the layout
+//! of Embree's BVH4 and obvhs' wide BVHs).
+
+use super::BvhNode;
+use crate::math::Aabb;
+use glam::{Vec3A, Vec4};
+
+/// Four child boxes in structure-of-arrays form, with what each child is.
+///
+/// Invariants (checked by [`super::Bvh::validate`]): lane `i` with `counts[i] == 0` and a
+/// finite box is an interior child at wide index `children[i]`, after this node; with
+/// `counts[i] > 0` it is a leaf over slots `children[i] .. + counts[i]`; an unused lane
+/// has the box `min = max = +inf`, which no ray can enter.
+#[derive(Clone, Copy, Debug, PartialEq)]
+#[repr(C, align(64))]
+pub struct WideNode {
+    /// Lower x of the four children.
+    pub min_x: Vec4,
+    /// Upper x.
+    pub max_x: Vec4,
+    /// Lower y.
+    pub min_y: Vec4,
+    /// Upper y.
+    pub max_y: Vec4,
+    /// Lower z.
+    pub min_z: Vec4,
+    /// Upper z.
+    pub max_z: Vec4,
+    /// Interior child: its wide node index. Leaf child: its first slot.
+    pub children: [u32; 4],
+    /// Leaf child: its slot count. Interior or unused: 0.
+    pub counts: [u32; 4],
+}
+
+const _: () = assert!(std::mem::size_of::<WideNode>() == 128);
+
+const UNUSED: f32 = f32::INFINITY;
+
+impl WideNode {
+    fn empty() -> Self {
+        let inf = Vec4::splat(UNUSED);
+        Self {
+            min_x: inf,
+            max_x: inf,
+            min_y: inf,
+            max_y: inf,
+            min_z: inf,
+            max_z: inf,
+            children: [0; 4],
+            counts: [0; 4],
+        }
+    }
+
+    fn set_box(&mut self, lane: usize, b: Aabb) {
+        self.min_x[lane] = b.min.x;
+        self.min_y[lane] = b.min.y;
+        self.min_z[lane] = b.min.z;
+        self.max_x[lane] = b.max.x;
+        self.max_y[lane] = b.max.y;
+        self.max_z[lane] = b.max.z;
+    }
+
+    /// The box of lane `lane`.
+    pub fn child_bounds(&self, lane: usize) -> Aabb {
+        Aabb {
+            min: Vec3A::new(self.min_x[lane], self.min_y[lane], self.min_z[lane]),
+            max: Vec3A::new(self.max_x[lane], self.max_y[lane], self.max_z[lane]),
+        }
+    }
+
+    /// True when lane `lane` holds a child.
+    pub fn is_used(&self, lane: usize) -> bool {
+        self.min_x[lane] != UNUSED
+    }
+}
+
+/// Collapses a binary BVH into a 4-wide one: each wide node takes the children of a
+/// binary node and keeps opening its largest interior child until it has four.
+pub fn collapse(binary: &[BvhNode]) -> Vec<WideNode> {
+    let mut wide = Vec::with_capacity(binary.len() / 3 + 1);
+    if let Some(root) = binary.first() {
+        if root.is_leaf() {
+            let mut node = WideNode::empty();
+            node.set_box(0, root.bounds());
+            node.children[0] = root.first();
+            node.counts[0] = root.count();
+            wide.push(node);
+        } else {
+            collapse_node(binary, 0, &mut wide);
+        }
+    }
+    wide
+}
+
+fn collapse_node(binary: &[BvhNode], index: usize, wide: &mut Vec<WideNode>) -> u32 {
+    let first = binary[index].first() as usize;
+    let mut lanes: Vec<usize> = vec![first, first + 1];
+    while lanes.len() < 4 {
+        let widest = lanes
+            .iter()
+            .enumerate()
+            .filter(|(_, n)| !binary[**n].is_leaf())
+            .max_by(|(_, a), (_, b)| {
+                binary[**a]
+                    .bounds()
+                    .surface_area()
+                    .total_cmp(&binary[**b].bounds().surface_area())
+            });
+        let Some((position, &open)) = widest else {
+            break;
+        };
+        let child = binary[open].first() as usize;
+        lanes.splice(position..=position, [child, child + 1]);
+    }
+    let at = wide.len();
+    wide.push(WideNode::empty());
+    let mut node = WideNode::empty();
+    for (lane, &child) in lanes.iter().enumerate() {
+        let c = &binary[child];
+        node.set_box(lane, c.bounds());
+        if c.is_leaf() {
+            node.children[lane] = c.first();
+            node.counts[lane] = c.count();
+        } else {
+            node.children[lane] = collapse_node(binary, child, wide);
+        }
+    }
+    wide[at] = node;
+    at as u32
+}
