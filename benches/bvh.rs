@@ -1,7 +1,7 @@
 //! BVH build speed: a 1 M-triangle BLAS, and the TLAS over 10 k, 100 k and 365 k
 //! instances (the paper's count), on a 2-thread pool.
 
-mod common;
+mod support;
 
 use criterion::{BenchmarkId, Criterion, Throughput, criterion_group, criterion_main};
 use glam::{Affine3A, Quat, Vec3};

@@ -1,12 +1,12 @@
 //! Ray throughput on the default scene at 640×480 (primary closest-hit, sun shadow
 //! any-hit) and the time of a full 4 spp frame, on a 2-thread pool.
 
-mod common;
+mod support;
 
-use common::BenchScene;
 use criterion::{Criterion, Throughput, criterion_group, criterion_main};
 use rayon::prelude::*;
 use std::time::Duration;
+use support::BenchScene;
 use sylva::engine::bvh::TraversalStats;
 use sylva::engine::render::{RenderParams, render_frame};
 

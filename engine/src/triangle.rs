@@ -97,7 +97,8 @@ impl WatertightRay {
         }
         let inv_det = 1.0 / det;
         let t = t_scaled * inv_det;
-        if !(t < t_max) {
+        // Also rejects NaN: a comparison with NaN is false.
+        if t.partial_cmp(&t_max) != Some(std::cmp::Ordering::Less) {
             return None;
         }
 

@@ -121,10 +121,12 @@ fn validate_after_every_preset_on_degenerate_input() {
         }
         m
     };
-    let mut one_point = TriangleMesh::default();
-    one_point.positions = vec![Vec3::ONE; 3];
-    one_point.indices = vec![[0, 1, 2]; 50];
-    one_point.shaders = vec![0; 50];
+    let one_point = TriangleMesh {
+        positions: vec![Vec3::ONE; 3],
+        indices: vec![[0, 1, 2]; 50],
+        shaders: vec![0; 50],
+        ..Default::default()
+    };
     let mut with_nan = random_mesh(&mut rng, 100, 1.0, 0.5);
     with_nan.positions[4] = Vec3::new(f32::NAN, 0.0, 0.0);
     with_nan.positions[10] = Vec3::splat(f32::INFINITY);

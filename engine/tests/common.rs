@@ -71,10 +71,10 @@ pub fn brute_closest(
     for i in 0..mesh.triangle_count() {
         let [a, b, c] = mesh.triangle(i);
         let t_max = best.map_or(ray.t_max, |b| b.0);
-        if let Some(h) = w.intersect(a, b, c, t_max) {
-            if accept(i as u32) {
-                best = Some((h.t, i as u32));
-            }
+        if let Some(h) = w.intersect(a, b, c, t_max)
+            && accept(i as u32)
+        {
+            best = Some((h.t, i as u32));
         }
     }
     best

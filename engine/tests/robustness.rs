@@ -197,10 +197,11 @@ fn spawned_rays_never_rehit_their_own_triangle() {
             }
             let spawned = Ray::new(point.offset_origin(n, d), d);
             checked += 1;
-            if let Some(again) = tlas.intersect_closest(&lib, &spawned, &mut stats, |_| true) {
-                if again.slot == hit.slot && again.triangle == hit.triangle {
-                    self_hits += 1;
-                }
+            if let Some(again) = tlas.intersect_closest(&lib, &spawned, &mut stats, |_| true)
+                && again.slot == hit.slot
+                && again.triangle == hit.triangle
+            {
+                self_hits += 1;
             }
         }
     }

@@ -15,16 +15,16 @@ use sylva_engine::render::{RenderParams, RenderScene, render_frame};
 use sylva_engine::shading::{Shader, ShaderTable};
 use sylva_engine::tlas::{InstanceDesc, TopLevel};
 
+/// Plants whose placement, geometry or visibility changed since a system last ran.
+type ChangedPlants = (
+    With<Instance>,
+    Or<(Changed<Transform>, Changed<Instance>, Added<Hidden>)>,
+);
+
 /// Run condition of [`rebuild_top_level`]: a plant was added, moved, re-pointed, hidden,
 /// shown or removed, or the geometry library changed.
 pub fn instances_changed(
-    changed: Query<
-        (),
-        (
-            With<Instance>,
-            Or<(Changed<Transform>, Changed<Instance>, Added<Hidden>)>,
-        ),
-    >,
+    changed: Query<(), ChangedPlants>,
     mut removed_instances: RemovedComponents<Instance>,
     mut removed_hidden: RemovedComponents<Hidden>,
     library: Res<GeometryLibrary>,

@@ -1,6 +1,10 @@
 //! Shared set-up for the benchmarks: the default scene, its TLAS, and ray batches.
 
-#![allow(dead_code)]
+#![allow(
+    dead_code,
+    missing_docs,
+    reason = "shared by several bench binaries, each using a part"
+)]
 
 use glam::{Vec2, Vec3A};
 use rayon::prelude::*;
