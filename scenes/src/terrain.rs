@@ -68,9 +68,11 @@ impl HeightField {
             gz.floor().min(self.cells as f32 - 1.0) as u32,
         );
         let (tx, tz) = (gx - ix as f32, gz - iz as f32);
-        let a = self.grid(ix, iz) + (self.grid(ix + 1, iz) - self.grid(ix, iz)) * tx;
-        let b = self.grid(ix, iz + 1) + (self.grid(ix + 1, iz + 1) - self.grid(ix, iz + 1)) * tx;
-        a + (b - a) * tz
+        // a·(1 − t) + b·t is exact at both ends, so grid points return their stored height.
+        let lerp = |a: f32, b: f32, t: f32| a * (1.0 - t) + b * t;
+        let a = lerp(self.grid(ix, iz), self.grid(ix + 1, iz), tx);
+        let b = lerp(self.grid(ix, iz + 1), self.grid(ix + 1, iz + 1), tx);
+        lerp(a, b, tz)
     }
 
     /// The mesh: vertex normals from central differences, UVs repeating every

@@ -82,7 +82,6 @@ const EMPTY_BIN: Bin = Bin {
     bounds: Aabb::EMPTY,
     count: 0,
 };
-type Bins = [[Bin; MAX_BINS]; 3];
 
 enum Split {
     Leaf,
@@ -90,13 +89,40 @@ enum Split {
     Binned {
         axis: usize,
         bin: usize,
+        bins: usize,
+        scale: Vec3A,
+        min: Vec3A,
         left: Aabb,
         right: Aabb,
     },
 }
 
+/// Per-subtree scratch memory, so a node pays only for the bins it uses instead of
+/// initialising (and copying) fixed worst-case arrays: that cost dominated small nodes.
+struct Scratch {
+    bins: Vec<Bin>,
+    right_cost: Vec<f32>,
+    right_bounds: Vec<Aabb>,
+}
+
+impl Scratch {
+    fn new() -> Self {
+        Self {
+            bins: vec![EMPTY_BIN; 3 * MAX_BINS],
+            right_cost: vec![0.0; MAX_BINS],
+            right_bounds: vec![Aabb::EMPTY; MAX_BINS],
+        }
+    }
+}
+
 struct Builder {
     params: BuildParams,
+}
+
+/// A subtree under construction with its scratch memory.
+struct Subtree {
+    nodes: Vec<BvhNode>,
+    scratch: Scratch,
 }
 
 impl Bvh {
@@ -149,8 +175,12 @@ impl Builder {
             (2 * refs.len()).saturating_sub(1) / self.params.max_leaf_size.max(1) + 1,
         );
         nodes.push(BvhNode::leaf(bounds, prim_offset, 0));
-        self.build_node(refs, prim_offset, bounds, depth, &mut nodes, 0);
-        nodes
+        let mut work = Subtree {
+            nodes,
+            scratch: Scratch::new(),
+        };
+        self.build_node(refs, prim_offset, bounds, depth, &mut work, 0);
+        work.nodes
     }
 
     fn build_node(
@@ -159,32 +189,35 @@ impl Builder {
         prim_offset: u32,
         bounds: Aabb,
         depth: usize,
-        nodes: &mut Vec<BvhNode>,
+        work: &mut Subtree,
         at: usize,
     ) {
         let n = refs.len();
-        let (mid, left_bounds, right_bounds) = match self.find_split(refs, bounds, depth) {
-            Split::Leaf => {
-                nodes[at] = BvhNode::leaf(bounds, prim_offset, n as u32);
-                return;
-            }
-            Split::Median => {
-                let mid = n / 2;
-                (mid, union_of(&refs[..mid]), union_of(&refs[mid..]))
-            }
-            Split::Binned {
-                axis,
-                bin,
-                left,
-                right,
-            } => {
-                let (scale, min) = bin_transform(&centroid_bounds(refs), self.params.bins);
-                let mid = partition(refs, |r| {
-                    bin_index(r.centroid, axis, scale, min, self.params.bins) < bin
-                });
-                (mid, left, right)
-            }
-        };
+        let (mid, left_bounds, right_bounds) =
+            match self.find_split(refs, bounds, depth, &mut work.scratch) {
+                Split::Leaf => {
+                    work.nodes[at] = BvhNode::leaf(bounds, prim_offset, n as u32);
+                    return;
+                }
+                Split::Median => {
+                    let mid = n / 2;
+                    (mid, union_of(&refs[..mid]), union_of(&refs[mid..]))
+                }
+                Split::Binned {
+                    axis,
+                    bin,
+                    bins,
+                    scale,
+                    min,
+                    left,
+                    right,
+                } => {
+                    let mid = partition(refs, |r| {
+                        bin_index(r.centroid, axis, scale, min, bins) < bin
+                    });
+                    (mid, left, right)
+                }
+            };
         let (left, right) = refs.split_at_mut(mid);
         let right_offset = prim_offset + mid as u32;
         if n >= self.params.parallel_threshold {
@@ -192,6 +225,7 @@ impl Builder {
                 || self.build_subtree(left, prim_offset, left_bounds, depth + 1),
                 || self.build_subtree(right, right_offset, right_bounds, depth + 1),
             );
+            let nodes = &mut work.nodes;
             let pair = nodes.len();
             nodes[at] = BvhNode::interior(bounds, pair as u32);
             let base_left = pair + 2;
@@ -208,23 +242,23 @@ impl Builder {
             nodes.extend(ln[1..].iter().map(|x| remap(x, base_left)));
             nodes.extend(rn[1..].iter().map(|x| remap(x, base_right)));
         } else {
-            let pair = nodes.len();
-            nodes[at] = BvhNode::interior(bounds, pair as u32);
-            nodes.push(BvhNode::leaf(left_bounds, prim_offset, 0));
-            nodes.push(BvhNode::leaf(right_bounds, right_offset, 0));
-            self.build_node(left, prim_offset, left_bounds, depth + 1, nodes, pair);
-            self.build_node(
-                right,
-                right_offset,
-                right_bounds,
-                depth + 1,
-                nodes,
-                pair + 1,
-            );
+            let pair = work.nodes.len();
+            work.nodes[at] = BvhNode::interior(bounds, pair as u32);
+            work.nodes.push(BvhNode::leaf(left_bounds, prim_offset, 0));
+            work.nodes
+                .push(BvhNode::leaf(right_bounds, right_offset, 0));
+            self.build_node(left, prim_offset, left_bounds, depth + 1, work, pair);
+            self.build_node(right, right_offset, right_bounds, depth + 1, work, pair + 1);
         }
     }
 
-    fn find_split(&self, refs: &[PrimRef], bounds: Aabb, depth: usize) -> Split {
+    fn find_split(
+        &self,
+        refs: &[PrimRef],
+        bounds: Aabb,
+        depth: usize,
+        scratch: &mut Scratch,
+    ) -> Split {
         let n = refs.len();
         let max_leaf = self.params.max_leaf_size;
         if n <= 1 {
@@ -238,24 +272,33 @@ impl Builder {
             };
         }
         let cb = centroid_bounds(refs);
-        let bins_per_axis = self.params.bins;
+        // More bins than primitives cannot find better splits.
+        let bins_per_axis = self.params.bins.min(n.max(2));
         let (scale, min) = bin_transform(&cb, bins_per_axis);
-        let bins = if n >= PARALLEL_BINNING {
-            refs.par_chunks(16 * 1024)
-                .map(|chunk| fill_bins(chunk, scale, min, bins_per_axis))
-                .reduce(|| [[EMPTY_BIN; MAX_BINS]; 3], merge_bins)
+        let all_bins = &mut scratch.bins[..3 * bins_per_axis];
+        if n >= PARALLEL_BINNING {
+            let merged = refs
+                .par_chunks(16 * 1024)
+                .map(|chunk| {
+                    let mut local = vec![EMPTY_BIN; 3 * bins_per_axis];
+                    fill_bins(chunk, scale, min, bins_per_axis, &mut local);
+                    local
+                })
+                .reduce(|| vec![EMPTY_BIN; 3 * bins_per_axis], merge_bins);
+            all_bins.copy_from_slice(&merged);
         } else {
-            fill_bins(refs, scale, min, bins_per_axis)
-        };
+            all_bins.fill(EMPTY_BIN);
+            fill_bins(refs, scale, min, bins_per_axis, all_bins);
+        }
 
         let mut best: Option<(f32, usize, usize, Aabb, Aabb)> = None;
-        for (axis, axis_bins) in bins.iter().enumerate() {
+        for axis in 0..3 {
             if scale[axis] == 0.0 {
                 continue;
             }
-            let bins = &axis_bins[..bins_per_axis];
-            let mut right_cost = [0.0f32; MAX_BINS];
-            let mut right_bounds = [Aabb::EMPTY; MAX_BINS];
+            let bins = &scratch.bins[axis * bins_per_axis..(axis + 1) * bins_per_axis];
+            let right_cost = &mut scratch.right_cost;
+            let right_bounds = &mut scratch.right_bounds;
             let (mut acc, mut count) = (Aabb::EMPTY, 0u32);
             for i in (1..bins_per_axis).rev() {
                 acc = acc.union(bins[i].bounds);
@@ -296,6 +339,9 @@ impl Builder {
             Split::Binned {
                 axis,
                 bin,
+                bins: bins_per_axis,
+                scale,
+                min,
                 left,
                 right,
             }
@@ -336,24 +382,21 @@ fn bin_index(centroid: Vec3A, axis: usize, scale: Vec3A, min: Vec3A, bins: usize
     (((centroid[axis] - min[axis]) * scale[axis]) as usize).min(bins - 1)
 }
 
-fn fill_bins(refs: &[PrimRef], scale: Vec3A, min: Vec3A, bins: usize) -> Bins {
-    let mut out = [[EMPTY_BIN; MAX_BINS]; 3];
+/// Adds each primitive to its bin on every axis; `out` holds `bins` bins per axis.
+fn fill_bins(refs: &[PrimRef], scale: Vec3A, min: Vec3A, bins: usize, out: &mut [Bin]) {
     for r in refs {
-        for (axis, axis_bins) in out.iter_mut().enumerate() {
-            let b = &mut axis_bins[bin_index(r.centroid, axis, scale, min, bins)];
+        for axis in 0..3 {
+            let b = &mut out[axis * bins + bin_index(r.centroid, axis, scale, min, bins)];
             b.bounds = b.bounds.union(r.bounds);
             b.count += 1;
         }
     }
-    out
 }
 
-fn merge_bins(mut a: Bins, b: Bins) -> Bins {
-    for (xa, xb) in a.iter_mut().zip(b.iter()) {
-        for (ba, bb) in xa.iter_mut().zip(xb.iter()) {
-            ba.bounds = ba.bounds.union(bb.bounds);
-            ba.count += bb.count;
-        }
+fn merge_bins(mut a: Vec<Bin>, b: Vec<Bin>) -> Vec<Bin> {
+    for (ba, bb) in a.iter_mut().zip(&b) {
+        ba.bounds = ba.bounds.union(bb.bounds);
+        ba.count += bb.count;
     }
     a
 }
