@@ -6,7 +6,7 @@
 
 use super::{Bvh, BvhNode, MAX_DEPTH};
 use crate::math::Aabb;
-use glam::{Vec3A, Vec4};
+use glam::Vec3A;
 use rayon::prelude::*;
 
 /// Settings of the builder; see the presets.
@@ -20,8 +20,8 @@ pub struct BuildParams {
     pub traversal_cost: f32,
     /// Nodes with at least this many primitives build their two subtrees in parallel.
     pub parallel_threshold: usize,
-    /// Bin only along the longest axis of the centroid box (about 3× less binning work,
-    /// slightly worse trees) instead of along all three.
+    /// Bin only along the longest axis of the centroid box (less binning work, slightly
+    /// worse trees) instead of along all three.
     pub longest_axis_only: bool,
 }
 
@@ -34,7 +34,7 @@ impl BuildParams {
         parallel_threshold: 4096,
         longest_axis_only: true,
     };
-    /// The default: good trees at a few tens of millions of primitives per second.
+    /// The default: binned SAH over all three axes.
     pub const BALANCED: BuildParams = BuildParams {
         bins: 16,
         max_leaf_size: 4,
@@ -71,89 +71,21 @@ const FORCED_MEDIAN_DEPTH: usize = MAX_DEPTH - 33;
 /// Nodes at least this large bin their primitives in parallel.
 const PARALLEL_BINNING: usize = 1 << 16;
 
-/// A primitive reference: its box, with the caller's index in the spare lane, so a
-/// reference is 32 bytes (the build is bound by passes over these).
 #[derive(Clone, Copy)]
 struct PrimRef {
-    lo: Vec4,
-    hi: Vec4,
-}
-
-impl PrimRef {
-    fn new(bounds: &Aabb, index: u32) -> Self {
-        Self {
-            lo: bounds.min.extend(f32::from_bits(index)),
-            hi: bounds.max.extend(0.0),
-        }
-    }
-
-    #[inline]
-    fn bounds(&self) -> Aabb {
-        Aabb {
-            min: Vec3A::from_vec4(self.lo),
-            max: Vec3A::from_vec4(self.hi),
-        }
-    }
-
-    #[inline]
-    fn centroid(&self) -> Vec3A {
-        (Vec3A::from_vec4(self.lo) + Vec3A::from_vec4(self.hi)) * 0.5
-    }
-
-    #[inline]
-    fn index(&self) -> u32 {
-        self.lo.w.to_bits()
-    }
-}
-
-/// A node's box and the box of its primitives' centroids (what binning spans).
-#[derive(Clone, Copy, Debug)]
-struct Extent {
     bounds: Aabb,
-    centroids: Aabb,
-}
-
-impl Extent {
-    const EMPTY: Extent = Extent {
-        bounds: Aabb::EMPTY,
-        centroids: Aabb::EMPTY,
-    };
-
-    #[inline]
-    fn add(self, r: &PrimRef) -> Extent {
-        Extent {
-            bounds: self.bounds.union(r.bounds()),
-            centroids: self.centroids.grow(r.centroid()),
-        }
-    }
-
-    #[inline]
-    fn union(self, other: Extent) -> Extent {
-        Extent {
-            bounds: self.bounds.union(other.bounds),
-            centroids: self.centroids.union(other.centroids),
-        }
-    }
-
-    fn of(refs: &[PrimRef]) -> Extent {
-        if refs.len() >= PARALLEL_BINNING {
-            refs.par_iter()
-                .fold(|| Extent::EMPTY, |e, r| e.add(r))
-                .reduce(|| Extent::EMPTY, Extent::union)
-        } else {
-            refs.iter().fold(Extent::EMPTY, |e, r| e.add(r))
-        }
-    }
+    centroid: Vec3A,
+    index: u32,
 }
 
 #[derive(Clone, Copy)]
 struct Bin {
-    extent: Extent,
+    bounds: Aabb,
     count: u32,
 }
 
 const EMPTY_BIN: Bin = Bin {
-    extent: Extent::EMPTY,
+    bounds: Aabb::EMPTY,
     count: 0,
 };
 
@@ -166,13 +98,9 @@ enum Split {
         bins: usize,
         scale: Vec3A,
         min: Vec3A,
-        left: Extent,
-        right: Extent,
+        left: Aabb,
+        right: Aabb,
     },
-}
-
-struct Builder {
-    params: BuildParams,
 }
 
 /// Per-subtree scratch memory, so a node pays only for the bins it uses instead of
@@ -180,7 +108,7 @@ struct Builder {
 struct Scratch {
     bins: Vec<Bin>,
     right_cost: Vec<f32>,
-    right_extent: Vec<Extent>,
+    right_bounds: Vec<Aabb>,
 }
 
 impl Scratch {
@@ -188,9 +116,13 @@ impl Scratch {
         Self {
             bins: vec![EMPTY_BIN; 3 * MAX_BINS],
             right_cost: vec![0.0; MAX_BINS],
-            right_extent: vec![Extent::EMPTY; MAX_BINS],
+            right_bounds: vec![Aabb::EMPTY; MAX_BINS],
         }
     }
+}
+
+struct Builder {
+    params: BuildParams,
 }
 
 /// A subtree under construction with its scratch memory.
@@ -212,16 +144,22 @@ impl Bvh {
             .par_iter()
             .enumerate()
             .filter(|(_, b)| !b.is_empty() && b.min.is_finite() && b.max.is_finite())
-            .map(|(i, b)| PrimRef::new(b, i as u32))
+            .map(|(i, b)| PrimRef {
+                bounds: *b,
+                centroid: b.center(),
+                index: i as u32,
+            })
             .collect();
         if refs.is_empty() {
             return Bvh::default();
         }
-        let extent = Extent::of(&refs);
+        let bounds = refs
+            .par_iter()
+            .map(|r| r.bounds)
+            .reduce(|| Aabb::EMPTY, Aabb::union);
         let builder = Builder { params };
-        let mut nodes = builder.build_subtree(&mut refs, 0, extent, 0);
-        nodes.shrink_to_fit();
-        let prim_indices = refs.iter().map(PrimRef::index).collect();
+        let nodes = builder.build_subtree(&mut refs, 0, bounds, 0);
+        let prim_indices = refs.iter().map(|r| r.index).collect();
         let wide = super::wide::collapse(&nodes);
         Bvh {
             nodes,
@@ -236,18 +174,18 @@ impl Builder {
         &self,
         refs: &mut [PrimRef],
         prim_offset: u32,
-        extent: Extent,
+        bounds: Aabb,
         depth: usize,
     ) -> Vec<BvhNode> {
-        // A binary tree over n primitives has at most 2n − 1 nodes: reserve that, so the
-        // vector never grows (growth copies dominated small builds).
-        let mut nodes = Vec::with_capacity(2 * refs.len());
-        nodes.push(BvhNode::leaf(extent.bounds, prim_offset, 0));
+        let mut nodes = Vec::with_capacity(
+            (2 * refs.len()).saturating_sub(1) / self.params.max_leaf_size.max(1) + 1,
+        );
+        nodes.push(BvhNode::leaf(bounds, prim_offset, 0));
         let mut work = Subtree {
             nodes,
             scratch: Scratch::new(),
         };
-        self.build_node(refs, prim_offset, extent, depth, &mut work, 0);
+        self.build_node(refs, prim_offset, bounds, depth, &mut work, 0);
         work.nodes
     }
 
@@ -255,22 +193,21 @@ impl Builder {
         &self,
         refs: &mut [PrimRef],
         prim_offset: u32,
-        extent: Extent,
+        bounds: Aabb,
         depth: usize,
         work: &mut Subtree,
         at: usize,
     ) {
         let n = refs.len();
-        let bounds = extent.bounds;
-        let (mid, left_extent, right_extent) =
-            match self.find_split(refs, extent, depth, &mut work.scratch) {
+        let (mid, left_bounds, right_bounds) =
+            match self.find_split(refs, bounds, depth, &mut work.scratch) {
                 Split::Leaf => {
                     work.nodes[at] = BvhNode::leaf(bounds, prim_offset, n as u32);
                     return;
                 }
                 Split::Median => {
                     let mid = n / 2;
-                    (mid, Extent::of(&refs[..mid]), Extent::of(&refs[mid..]))
+                    (mid, union_of(&refs[..mid]), union_of(&refs[mid..]))
                 }
                 Split::Binned {
                     axis,
@@ -282,7 +219,7 @@ impl Builder {
                     right,
                 } => {
                     let mid = partition(refs, |r| {
-                        bin_indices(r.centroid(), scale, min, bins)[axis] < bin
+                        bin_index(r.centroid, axis, scale, min, bins) < bin
                     });
                     (mid, left, right)
                 }
@@ -291,8 +228,8 @@ impl Builder {
         let right_offset = prim_offset + mid as u32;
         if n >= self.params.parallel_threshold {
             let (ln, rn) = rayon::join(
-                || self.build_subtree(left, prim_offset, left_extent, depth + 1),
-                || self.build_subtree(right, right_offset, right_extent, depth + 1),
+                || self.build_subtree(left, prim_offset, left_bounds, depth + 1),
+                || self.build_subtree(right, right_offset, right_bounds, depth + 1),
             );
             let nodes = &mut work.nodes;
             let pair = nodes.len();
@@ -313,19 +250,18 @@ impl Builder {
         } else {
             let pair = work.nodes.len();
             work.nodes[at] = BvhNode::interior(bounds, pair as u32);
+            work.nodes.push(BvhNode::leaf(left_bounds, prim_offset, 0));
             work.nodes
-                .push(BvhNode::leaf(left_extent.bounds, prim_offset, 0));
-            work.nodes
-                .push(BvhNode::leaf(right_extent.bounds, right_offset, 0));
-            self.build_node(left, prim_offset, left_extent, depth + 1, work, pair);
-            self.build_node(right, right_offset, right_extent, depth + 1, work, pair + 1);
+                .push(BvhNode::leaf(right_bounds, right_offset, 0));
+            self.build_node(left, prim_offset, left_bounds, depth + 1, work, pair);
+            self.build_node(right, right_offset, right_bounds, depth + 1, work, pair + 1);
         }
     }
 
     fn find_split(
         &self,
         refs: &[PrimRef],
-        extent: Extent,
+        bounds: Aabb,
         depth: usize,
         scratch: &mut Scratch,
     ) -> Split {
@@ -341,12 +277,12 @@ impl Builder {
                 Split::Median
             };
         }
+        let cb = centroid_bounds(refs);
         // More bins than primitives cannot find better splits.
         let bins_per_axis = self.params.bins.min(n.max(2));
-        let (scale, min) = bin_transform(&extent.centroids, bins_per_axis);
-        let all_bins = &mut scratch.bins[..3 * bins_per_axis];
+        let (scale, min) = bin_transform(&cb, bins_per_axis);
         let scale = if self.params.longest_axis_only {
-            let axis = extent.centroids.largest_axis();
+            let axis = cb.largest_axis();
             Vec3A::select(
                 glam::BVec3A::new(axis == 0, axis == 1, axis == 2),
                 scale,
@@ -355,6 +291,7 @@ impl Builder {
         } else {
             scale
         };
+        let all_bins = &mut scratch.bins[..3 * bins_per_axis];
         if n >= PARALLEL_BINNING {
             let merged = refs
                 .par_chunks(16 * 1024)
@@ -370,33 +307,35 @@ impl Builder {
             fill_bins(refs, scale, min, bins_per_axis, all_bins);
         }
 
-        let mut best: Option<(f32, usize, usize, Extent, Extent)> = None;
+        let mut best: Option<(f32, usize, usize, Aabb, Aabb)> = None;
         for axis in 0..3 {
             if scale[axis] == 0.0 {
                 continue;
             }
             let bins = &scratch.bins[axis * bins_per_axis..(axis + 1) * bins_per_axis];
-            let (mut acc, mut count) = (Extent::EMPTY, 0u32);
+            let right_cost = &mut scratch.right_cost;
+            let right_bounds = &mut scratch.right_bounds;
+            let (mut acc, mut count) = (Aabb::EMPTY, 0u32);
             for i in (1..bins_per_axis).rev() {
-                acc = acc.union(bins[i].extent);
+                acc = acc.union(bins[i].bounds);
                 count += bins[i].count;
-                scratch.right_extent[i] = acc;
-                scratch.right_cost[i] = if count == 0 {
+                right_bounds[i] = acc;
+                right_cost[i] = if count == 0 {
                     f32::INFINITY
                 } else {
-                    acc.bounds.surface_area() * count as f32
+                    acc.surface_area() * count as f32
                 };
             }
-            let (mut acc, mut count) = (Extent::EMPTY, 0u32);
+            let (mut acc, mut count) = (Aabb::EMPTY, 0u32);
             for i in 1..bins_per_axis {
-                acc = acc.union(bins[i - 1].extent);
+                acc = acc.union(bins[i - 1].bounds);
                 count += bins[i - 1].count;
-                if count == 0 || !scratch.right_cost[i].is_finite() {
+                if count == 0 || !right_cost[i].is_finite() {
                     continue;
                 }
-                let cost = acc.bounds.surface_area() * count as f32 + scratch.right_cost[i];
+                let cost = acc.surface_area() * count as f32 + right_cost[i];
                 if best.is_none_or(|b| cost < b.0) {
-                    best = Some((cost, axis, i, acc, scratch.right_extent[i]));
+                    best = Some((cost, axis, i, acc, right_bounds[i]));
                 }
             }
         }
@@ -407,7 +346,7 @@ impl Builder {
                 Split::Median
             };
         };
-        let area = extent.bounds.surface_area();
+        let area = bounds.surface_area();
         let split_cost = self.params.traversal_cost * area + cost;
         let leaf_cost = n as f32 * area;
         if n <= max_leaf && leaf_cost <= split_cost {
@@ -426,6 +365,20 @@ impl Builder {
     }
 }
 
+fn union_of(refs: &[PrimRef]) -> Aabb {
+    refs.iter().fold(Aabb::EMPTY, |b, r| b.union(r.bounds))
+}
+
+fn centroid_bounds(refs: &[PrimRef]) -> Aabb {
+    if refs.len() >= PARALLEL_BINNING {
+        refs.par_iter()
+            .map(|r| Aabb::new(r.centroid, r.centroid))
+            .reduce(|| Aabb::EMPTY, Aabb::union)
+    } else {
+        refs.iter().fold(Aabb::EMPTY, |b, r| b.grow(r.centroid))
+    }
+}
+
 /// Per-axis scale and offset mapping a centroid to a bin; scale 0 marks an axis with no
 /// extent (nothing to split).
 fn bin_transform(cb: &Aabb, bins: usize) -> (Vec3A, Vec3A) {
@@ -440,11 +393,16 @@ fn bin_transform(cb: &Aabb, bins: usize) -> (Vec3A, Vec3A) {
     (scale, cb.min)
 }
 
+#[inline]
+fn bin_index(centroid: Vec3A, axis: usize, scale: Vec3A, min: Vec3A, bins: usize) -> usize {
+    bin_indices(centroid, scale, min, bins)[axis]
+}
+
 /// The bin of a centroid on all three axes at once, without float-to-integer casts
-/// (Rust's saturating casts dominated the build): clamp in SIMD, then add 2²³ so the
-/// integer lands in the low mantissa bits. Rounding to nearest after subtracting ½ makes
-/// `[i, i + 1)` map to bin `i`; all that matters is that it is monotone, in range, and the
-/// same in binning and partitioning.
+/// (Rust's saturating casts were a fifth of all build instructions): clamp in SIMD, then
+/// add 2²³ so the integer lands in the low mantissa bits. Rounding to nearest after
+/// subtracting ½ maps `[i, i + 1)` to bin `i`; all that matters is that the mapping is
+/// monotone, in range, and the same in binning and partitioning.
 #[inline]
 fn bin_indices(centroid: Vec3A, scale: Vec3A, min: Vec3A, bins: usize) -> [usize; 3] {
     const MAGIC: f32 = 8_388_608.0; // 2²³
@@ -455,26 +413,24 @@ fn bin_indices(centroid: Vec3A, scale: Vec3A, min: Vec3A, bins: usize) -> [usize
 }
 
 /// Adds each primitive to its bin on every axis; `out` holds `bins` bins per axis.
-/// Axes whose scale is 0 cannot be split and are skipped.
 fn fill_bins(refs: &[PrimRef], scale: Vec3A, min: Vec3A, bins: usize, out: &mut [Bin]) {
-    let active: Vec<usize> = (0..3).filter(|&a| scale[a] != 0.0).collect();
+    // Axes with scale 0 cannot be split: skip their bins.
+    let active = [scale.x != 0.0, scale.y != 0.0, scale.z != 0.0];
     for r in refs {
-        let (bounds, centroid) = (r.bounds(), r.centroid());
-        let k = bin_indices(centroid, scale, min, bins);
-        for &axis in &active {
-            let b = &mut out[axis * bins + k[axis]];
-            b.extent = Extent {
-                bounds: b.extent.bounds.union(bounds),
-                centroids: b.extent.centroids.grow(centroid),
-            };
-            b.count += 1;
+        let k = bin_indices(r.centroid, scale, min, bins);
+        for axis in 0..3 {
+            if active[axis] {
+                let b = &mut out[axis * bins + k[axis]];
+                b.bounds = b.bounds.union(r.bounds);
+                b.count += 1;
+            }
         }
     }
 }
 
 fn merge_bins(mut a: Vec<Bin>, b: Vec<Bin>) -> Vec<Bin> {
     for (ba, bb) in a.iter_mut().zip(&b) {
-        ba.extent = ba.extent.union(bb.extent);
+        ba.bounds = ba.bounds.union(bb.bounds);
         ba.count += bb.count;
     }
     a
