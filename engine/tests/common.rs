@@ -1,7 +1,11 @@
 //! Shared helpers for the engine's integration tests: a seeded generator, random
 //! meshes and rays, and brute-force oracles.
 
-#![allow(dead_code, missing_docs)]
+#![allow(
+    dead_code,
+    missing_docs,
+    reason = "each test binary uses a part of these helpers"
+)]
 
 use glam::{Affine3A, Quat, Vec3, Vec3A};
 use sylva_engine::geometry::GeometryLibrary;

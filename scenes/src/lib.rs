@@ -160,3 +160,61 @@ pub fn spawn(world: &mut World, scene: SceneBuild) -> SpawnedScene {
     let camera = world.spawn((scene.camera, scene.camera_transform)).id();
     SpawnedScene { camera, plants }
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn fingerprint(scene: &SceneBuild) -> (Vec<(u32, [u32; 10])>, Vec<Vec<glam::Vec3>>) {
+        let plants = scene
+            .plants
+            .iter()
+            .map(|(g, t)| {
+                let a = t.to_affine().to_cols_array();
+                (g.0, [0, 1, 2, 3, 4, 5, 6, 7, 8, 9].map(|i| a[i].to_bits()))
+            })
+            .collect();
+        let meshes = scene
+            .library
+            .geometries
+            .iter()
+            .map(|g| g.mesh.positions.clone())
+            .collect();
+        (plants, meshes)
+    }
+
+    #[test]
+    fn same_seed_same_scene_other_seed_other_scene() {
+        let a = build_scene("meadow", 3).unwrap();
+        let b = build_scene("meadow", 3).unwrap();
+        let c = build_scene("meadow", 4).unwrap();
+        assert_eq!(fingerprint(&a), fingerprint(&b));
+        assert_ne!(fingerprint(&a).0, fingerprint(&c).0);
+        let stats = a.stats();
+        assert_eq!(stats.species, 3);
+        assert!(
+            stats.instances > 2000 && stats.unique_triangles > 300_000,
+            "{stats:?}"
+        );
+        assert!(stats.instanced_triangles > stats.unique_triangles as u64);
+    }
+
+    #[test]
+    fn unknown_scene_is_an_error_naming_it() {
+        let e = build_scene("jungle", 0).unwrap_err().to_string();
+        assert!(e.contains("jungle") && e.contains("meadow"), "{e}");
+    }
+
+    #[test]
+    fn spawn_makes_one_entity_per_plant_and_a_camera() {
+        let mut world = World::new();
+        let scene = build_scene("meadow", 0).unwrap();
+        let plants = scene.plants.len();
+        let spawned = spawn(&mut world, scene);
+        assert_eq!(spawned.plants.len(), plants);
+        assert!(world.get::<Camera>(spawned.camera).is_some());
+        let instances = world.query::<&Instance>().iter(&world).count();
+        assert_eq!(instances, plants + 1, "plants plus the terrain");
+        assert_eq!(world.query::<&Shader>().iter(&world).count(), 5);
+    }
+}
