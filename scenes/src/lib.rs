@@ -165,7 +165,10 @@ pub fn spawn(world: &mut World, scene: SceneBuild) -> SpawnedScene {
 mod tests {
     use super::*;
 
-    fn fingerprint(scene: &SceneBuild) -> (Vec<(u32, [u32; 10])>, Vec<Vec<glam::Vec3>>) {
+    /// Every plant's geometry and transform bits, and every mesh's positions.
+    type Fingerprint = (Vec<(u32, [u32; 10])>, Vec<Vec<glam::Vec3>>);
+
+    fn fingerprint(scene: &SceneBuild) -> Fingerprint {
         let plants = scene
             .plants
             .iter()
