@@ -7,7 +7,7 @@ use std::path::{Path, PathBuf};
 use std::sync::Arc;
 use std::time::Instant;
 use sylva::engine::film::{ImageKind, Tile};
-use sylva::engine::tlas::{InstanceDesc, TopLevel};
+use sylva::engine::tlas::TopLevel;
 use sylva::prelude::*;
 use sylva::scenes::{SCENE_NAMES, SceneBuild};
 use tracing_subscriber::prelude::*;
@@ -245,20 +245,7 @@ fn info(args: SceneArgs) -> Result<()> {
     let scene = build(&mut world, &args)?;
     let stats = scene.stats();
     let pool = world.resource::<RenderPool>().clone();
-    let mut descs: Vec<InstanceDesc> = scene
-        .plants
-        .iter()
-        .map(|(g, t)| InstanceDesc {
-            transform: t.to_affine(),
-            geometry: *g,
-        })
-        .collect();
-    if let Some(terrain) = scene.terrain {
-        descs.push(InstanceDesc {
-            transform: glam::Affine3A::IDENTITY,
-            geometry: terrain,
-        });
-    }
+    let descs = scene.instance_descs();
     let start = Instant::now();
     let tlas = pool.install(|| TopLevel::build(&scene.library, &descs, Default::default()));
     let tlas_time = start.elapsed();

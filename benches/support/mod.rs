@@ -15,7 +15,7 @@ use sylva::engine::light::LightSet;
 use sylva::engine::math::Ray;
 use sylva::engine::render::RenderScene;
 use sylva::engine::shading::ShaderTable;
-use sylva::engine::tlas::{InstanceDesc, TopLevel};
+use sylva::engine::tlas::TopLevel;
 use sylva::scenes::SceneBuild;
 
 /// The default scene as flat render data, with its camera at 640×480.
@@ -30,18 +30,7 @@ pub struct BenchScene {
 impl BenchScene {
     pub fn meadow() -> Self {
         let build = sylva::scenes::build_scene("meadow", 0).unwrap();
-        let mut descs: Vec<InstanceDesc> = build
-            .plants
-            .iter()
-            .map(|(g, t)| InstanceDesc {
-                transform: t.to_affine(),
-                geometry: *g,
-            })
-            .collect();
-        descs.extend(build.terrain.map(|g| InstanceDesc {
-            transform: glam::Affine3A::IDENTITY,
-            geometry: g,
-        }));
+        let descs = build.instance_descs();
         let top_level = TopLevel::build(&build.library, &descs, Default::default());
         let shaders = ShaderTable::new(build.shaders.clone());
         let lights = LightSet {

@@ -11,23 +11,25 @@ use glam::{Affine3A, Quat, Vec3, Vec3A};
 use sylva_engine::geometry::GeometryLibrary;
 use sylva_engine::math::Ray;
 use sylva_engine::mesh::TriangleMesh;
-use sylva_engine::sampling::mix64;
+use sylva_engine::sampling::SplitMix64;
 use sylva_engine::tlas::InstanceDesc;
 use sylva_engine::triangle::WatertightRay;
 
-/// A tiny deterministic generator for tests.
-pub struct Rng(pub u64);
+/// The engine's SplitMix64 with the vector helpers tests need.
+pub struct TestRng(SplitMix64);
 
-impl Rng {
+impl TestRng {
+    pub fn new(seed: u64) -> Self {
+        Self(SplitMix64(seed))
+    }
     pub fn next_u64(&mut self) -> u64 {
-        self.0 = self.0.wrapping_add(0x9e37_79b9_7f4a_7c15);
-        mix64(self.0)
+        self.0.next_u64()
     }
     pub fn f32(&mut self) -> f32 {
-        (self.next_u64() >> 40) as f32 / (1u64 << 24) as f32
+        self.0.f32()
     }
     pub fn range(&mut self, lo: f32, hi: f32) -> f32 {
-        lo + (hi - lo) * self.f32()
+        self.0.range(lo, hi)
     }
     pub fn vec3(&mut self, lo: f32, hi: f32) -> Vec3 {
         Vec3::new(self.range(lo, hi), self.range(lo, hi), self.range(lo, hi))
@@ -44,7 +46,7 @@ impl Rng {
 }
 
 /// `n` random triangles of size up to `size` inside a cube of half-width `extent`.
-pub fn random_mesh(rng: &mut Rng, n: usize, extent: f32, size: f32) -> TriangleMesh {
+pub fn random_mesh(rng: &mut TestRng, n: usize, extent: f32, size: f32) -> TriangleMesh {
     let mut mesh = TriangleMesh::default();
     for i in 0..n {
         let c = rng.vec3(-extent, extent);
@@ -59,7 +61,7 @@ pub fn random_mesh(rng: &mut Rng, n: usize, extent: f32, size: f32) -> TriangleM
 }
 
 /// A random ray starting inside a cube of half-width `extent`.
-pub fn random_ray(rng: &mut Rng, extent: f32) -> Ray {
+pub fn random_ray(rng: &mut TestRng, extent: f32) -> Ray {
     Ray::new(rng.vec3(-extent, extent).into(), rng.unit().into())
 }
 
@@ -108,7 +110,7 @@ pub fn brute_closest_instances(
 }
 
 /// A random instance transform with scales in `[10^lo, 10^hi]`.
-pub fn random_transform(rng: &mut Rng, extent: f32, log_scale: (f32, f32)) -> Affine3A {
+pub fn random_transform(rng: &mut TestRng, extent: f32, log_scale: (f32, f32)) -> Affine3A {
     let s = 10f32.powf(rng.range(log_scale.0, log_scale.1));
     let rot = Quat::from_scaled_axis(rng.unit() * rng.range(0.0, 3.1));
     let scale = Vec3::new(
@@ -120,6 +122,6 @@ pub fn random_transform(rng: &mut Rng, extent: f32, log_scale: (f32, f32)) -> Af
 }
 
 /// A point in a random direction from `Vec3A::ZERO` at distance `d`.
-pub fn on_sphere(rng: &mut Rng, d: f32) -> Vec3A {
+pub fn on_sphere(rng: &mut TestRng, d: f32) -> Vec3A {
     Vec3A::from(rng.unit()) * d
 }

@@ -23,7 +23,7 @@ struct Fixture {
 }
 
 fn fixture() -> Fixture {
-    let mut rng = Rng(4);
+    let mut rng = TestRng::new(4);
     let mut library = GeometryLibrary::default();
     let mut ground = TriangleMesh {
         positions: vec![

@@ -14,7 +14,7 @@ use sylva_engine::triangle::hit_point;
 
 /// A closed UV sphere whose vertices are jittered radially (still closed: triangles
 /// share vertices by index).
-fn jittered_sphere(rng: &mut Rng, rings: u32, segments: u32) -> TriangleMesh {
+fn jittered_sphere(rng: &mut TestRng, rings: u32, segments: u32) -> TriangleMesh {
     let mut mesh = TriangleMesh::default();
     mesh.positions.push(Vec3::Y);
     for r in 1..rings {
@@ -91,7 +91,7 @@ fn count_leaks(
 
 #[test]
 fn rays_at_shared_edges_and_vertices_never_leak() {
-    let mut rng = Rng(11);
+    let mut rng = TestRng::new(11);
     let mut lib = GeometryLibrary::default();
     lib.add(
         Geometry::new(
@@ -135,7 +135,7 @@ fn rays_at_shared_edges_and_vertices_never_leak() {
 
 #[test]
 fn spawned_rays_never_rehit_their_own_triangle() {
-    let mut rng = Rng(23);
+    let mut rng = TestRng::new(23);
     let mut lib = GeometryLibrary::default();
     lib.add(
         Geometry::new(

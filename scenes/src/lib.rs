@@ -18,7 +18,7 @@ use sylva_engine::geometry::{GeometryId, GeometryLibrary};
 use sylva_engine::light::{DirectionalLight, SkyLight};
 use sylva_engine::mesh::MeshError;
 use sylva_engine::shading::Shader;
-use sylva_engine::tlas::InstanceRecord;
+use sylva_engine::tlas::{InstanceDesc, InstanceRecord};
 
 /// Names of the built-in scenes.
 pub const SCENE_NAMES: &[&str] = &["meadow"];
@@ -98,6 +98,19 @@ pub struct SceneStats {
 }
 
 impl SceneBuild {
+    /// Every instance as the TLAS takes it: the plants, then the terrain at the origin.
+    pub fn instance_descs(&self) -> Vec<InstanceDesc> {
+        let plants = self.plants.iter().map(|(geometry, t)| InstanceDesc {
+            transform: t.to_affine(),
+            geometry: *geometry,
+        });
+        let terrain = self.terrain.map(|geometry| InstanceDesc {
+            transform: glam::Affine3A::IDENTITY,
+            geometry,
+        });
+        plants.chain(terrain).collect()
+    }
+
     /// Counts species, triangles, instances and memory.
     pub fn stats(&self) -> SceneStats {
         let tri = |g: GeometryId| self.library.get(g).map_or(0, |g| g.mesh.triangle_count()) as u64;

@@ -2,11 +2,11 @@
 //! noise with fBm. Same seed, same scene, on every machine.
 
 use glam::Vec3;
-use sylva_engine::sampling::mix64;
+use sylva_engine::sampling::{SplitMix64, mix64};
 
-/// A SplitMix64 generator.
+/// A SplitMix64 generator with named streams.
 #[derive(Clone, Debug)]
-pub struct SceneRng(u64);
+pub struct SceneRng(SplitMix64);
 
 impl SceneRng {
     /// A generator for `seed` and a named stream (so adding one consumer of randomness does
@@ -15,23 +15,22 @@ impl SceneRng {
         let h = stream.bytes().fold(0xcbf2_9ce4_8422_2325u64, |h, b| {
             (h ^ b as u64).wrapping_mul(0x1000_0000_01b3)
         });
-        Self(mix64(seed) ^ h)
+        Self(SplitMix64(mix64(seed) ^ h))
     }
 
     /// Next 64 random bits.
     pub fn next_u64(&mut self) -> u64 {
-        self.0 = self.0.wrapping_add(0x9e37_79b9_7f4a_7c15);
-        mix64(self.0)
+        self.0.next_u64()
     }
 
     /// Uniform in [0, 1).
     pub fn f32(&mut self) -> f32 {
-        (self.next_u64() >> 40) as f32 / (1u64 << 24) as f32
+        self.0.f32()
     }
 
     /// Uniform in [lo, hi).
     pub fn range(&mut self, lo: f32, hi: f32) -> f32 {
-        lo + (hi - lo) * self.f32()
+        self.0.range(lo, hi)
     }
 
     /// Uniform integer in [0, n).
