@@ -267,6 +267,7 @@ impl Film {
     }
 
     /// Writes linear mean radiance as an RGBA f32 EXR, atomically.
+    #[cfg(feature = "exr")]
     pub fn write_exr(&self, path: &Path) -> Result<(), OutputError> {
         let mean = self.mean_rgb();
         let width = self.width as usize;
@@ -276,6 +277,15 @@ impl Film {
                 (r, g, b, 1.0f32)
             })
             .map_err(|e| e.to_string())
+        })
+    }
+
+    /// Without the `exr` feature: an error saying how to get EXR output.
+    #[cfg(not(feature = "exr"))]
+    pub fn write_exr(&self, path: &Path) -> Result<(), OutputError> {
+        Err(OutputError::FeatureDisabled {
+            path: path.to_owned(),
+            feature: "exr",
         })
     }
 
@@ -298,7 +308,7 @@ pub enum ImageKind {
 }
 
 impl ImageKind {
-    /// The format an output path asks for.
+    /// The format an output path asks for; `.exr` needs the `exr` feature.
     pub fn from_path(path: &Path) -> Result<Self, OutputError> {
         match path
             .extension()
@@ -307,7 +317,11 @@ impl ImageKind {
             .as_deref()
         {
             Some("png") => Ok(Self::Png),
-            Some("exr") => Ok(Self::Exr),
+            Some("exr") if cfg!(feature = "exr") => Ok(Self::Exr),
+            Some("exr") => Err(OutputError::FeatureDisabled {
+                path: path.to_owned(),
+                feature: "exr",
+            }),
             _ => Err(OutputError::UnknownFormat {
                 path: path.to_owned(),
             }),
@@ -323,6 +337,14 @@ pub enum OutputError {
     UnknownFormat {
         /// The path given.
         path: PathBuf,
+    },
+    /// The format needs a cargo feature this build was made without.
+    #[error("{}: this build has no {feature} support (rebuild with `--features {feature}`)", path.display())]
+    FeatureDisabled {
+        /// The path given.
+        path: PathBuf,
+        /// The missing feature.
+        feature: &'static str,
     },
     /// Encoding or file system failure.
     #[error("{}: could not write image: {reason}", path.display())]
