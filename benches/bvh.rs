@@ -7,21 +7,14 @@ use criterion::{BenchmarkId, Criterion, Throughput, criterion_group, criterion_m
 use glam::{Affine3A, Quat, Vec3};
 use std::time::Duration;
 use sylva::engine::bvh::{BuildParams, Bvh};
-use sylva::engine::geometry::{Geometry, GeometryId};
+use sylva::engine::geometry::GeometryId;
 use sylva::engine::math::Aabb;
 use sylva::engine::tlas::{InstanceDesc, TopLevel};
 use sylva::scenes::random::SceneRng;
 use sylva::scenes::terrain::{HeightField, TerrainParams};
 
-fn pool() -> rayon::ThreadPool {
-    rayon::ThreadPoolBuilder::new()
-        .num_threads(2)
-        .build()
-        .unwrap()
-}
-
 fn blas(c: &mut Criterion) {
-    let pool = pool();
+    let pool = support::two_thread_pool();
     // 708² cells × 2 = 1,002,528 triangles of rolling terrain.
     let mesh = HeightField::fbm(
         1,
@@ -51,7 +44,7 @@ fn blas(c: &mut Criterion) {
 }
 
 fn tlas(c: &mut Criterion) {
-    let pool = pool();
+    let pool = support::two_thread_pool();
     let meadow = sylva::scenes::build_scene("meadow", 0).unwrap();
     let species: Vec<GeometryId> = meadow.species.iter().map(|s| s.geometry).collect();
     let mut group = c.benchmark_group("tlas_build");
@@ -82,7 +75,6 @@ fn tlas(c: &mut Criterion) {
         });
     }
     group.finish();
-    let _ = Geometry::bounds;
 }
 
 criterion_group!(benches, blas, tlas);

@@ -4,22 +4,13 @@
 mod support;
 
 use criterion::{Criterion, Throughput, criterion_group, criterion_main};
-use rayon::prelude::*;
 use std::time::Duration;
-use support::BenchScene;
-use sylva::engine::bvh::TraversalStats;
+use support::{BenchScene, count_rays, two_thread_pool};
 use sylva::engine::render::{RenderParams, render_frame};
-
-fn pool() -> rayon::ThreadPool {
-    rayon::ThreadPoolBuilder::new()
-        .num_threads(2)
-        .build()
-        .unwrap()
-}
 
 fn rays(c: &mut Criterion) {
     let bench = BenchScene::meadow();
-    let pool = pool();
+    let pool = two_thread_pool();
     let scene = bench.scene();
     let primary = bench.primary_rays();
     let shadow = pool.install(|| bench.shadow_rays());
@@ -30,36 +21,12 @@ fn rays(c: &mut Criterion) {
     group.throughput(Throughput::Elements(primary.len() as u64));
     group.bench_function("primary_closest_hit_rays", |b| {
         b.iter(|| {
-            pool.install(|| {
-                primary
-                    .par_chunks(1024)
-                    .map(|chunk| {
-                        let mut stats = TraversalStats::default();
-                        chunk
-                            .iter()
-                            .filter(|r| scene.closest(r, &mut stats).is_some())
-                            .count()
-                    })
-                    .sum::<usize>()
-            })
+            pool.install(|| count_rays(&primary, |r, stats| scene.closest(r, stats).is_some()))
         })
     });
     group.throughput(Throughput::Elements(shadow.len() as u64));
     group.bench_function("sun_shadow_any_hit_rays", |b| {
-        b.iter(|| {
-            pool.install(|| {
-                shadow
-                    .par_chunks(1024)
-                    .map(|chunk| {
-                        let mut stats = TraversalStats::default();
-                        chunk
-                            .iter()
-                            .filter(|r| scene.occluded(r, &mut stats))
-                            .count()
-                    })
-                    .sum::<usize>()
-            })
-        })
+        b.iter(|| pool.install(|| count_rays(&shadow, |r, stats| scene.occluded(r, stats))))
     });
     group.finish();
 

@@ -9,7 +9,7 @@ use std::time::Instant;
 use sylva::engine::film::{ImageKind, Tile};
 use sylva::engine::tlas::TopLevel;
 use sylva::prelude::*;
-use sylva::scenes::{SCENE_NAMES, SceneBuild};
+use sylva::scenes::SceneBuild;
 use tracing_subscriber::prelude::*;
 
 /// Sylva: a ray tracer for dense plant ecosystems.
@@ -112,16 +112,6 @@ fn init_tracing(trace: Option<&Path>) -> Option<tracing_chrome::FlushGuard> {
     }
 }
 
-fn check_scene_name(name: &str) -> Result<()> {
-    if !SCENE_NAMES.contains(&name) {
-        bail!(
-            "unknown scene '{name}' (available: {})",
-            SCENE_NAMES.join(", ")
-        );
-    }
-    Ok(())
-}
-
 fn check_output_path(path: &Path) -> Result<()> {
     ImageKind::from_path(path)?;
     let dir = path
@@ -139,7 +129,6 @@ fn check_output_path(path: &Path) -> Result<()> {
 }
 
 fn build(world: &mut World, args: &SceneArgs) -> Result<SceneBuild> {
-    check_scene_name(&args.scene)?;
     init_render_world(world, args.threads as usize)
         .map_err(|e| anyhow::anyhow!("could not start the worker threads: {e}"))?;
     world.insert_resource(RenderSeed(args.seed));

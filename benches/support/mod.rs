@@ -90,3 +90,21 @@ impl BenchScene {
             .collect()
     }
 }
+
+/// The 2-thread pool every benchmark runs on.
+pub fn two_thread_pool() -> rayon::ThreadPool {
+    rayon::ThreadPoolBuilder::new()
+        .num_threads(2)
+        .build()
+        .unwrap()
+}
+
+/// How many rays satisfy `test`, in parallel chunks on the current pool.
+pub fn count_rays(rays: &[Ray], test: impl Fn(&Ray, &mut TraversalStats) -> bool + Sync) -> usize {
+    rays.par_chunks(1024)
+        .map(|chunk| {
+            let mut stats = TraversalStats::default();
+            chunk.iter().filter(|r| test(r, &mut stats)).count()
+        })
+        .sum()
+}

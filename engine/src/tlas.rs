@@ -188,7 +188,6 @@ impl TopLevel {
             });
             Some(found.hit.t)
         });
-        inner.closest_rays = 0;
         stats.add(&inner);
         best
     }

@@ -8,7 +8,7 @@ use std::sync::Arc;
 use sylva_engine::bvh::BuildParams;
 use sylva_engine::camera::{Camera, CameraView};
 use sylva_engine::film::{FrameBuffer, Tile};
-use sylva_engine::geometry::{Geometry, GeometryId, GeometryLibrary};
+use sylva_engine::geometry::{Geometry, GeometryLibrary};
 use sylva_engine::light::{DirectionalLight, LightSet, SkyLight};
 use sylva_engine::mesh::TriangleMesh;
 use sylva_engine::render::{RenderParams, RenderScene, render_frame, render_tile};
@@ -25,7 +25,7 @@ struct Fixture {
 fn fixture() -> Fixture {
     let mut rng = TestRng::new(4);
     let mut library = GeometryLibrary::default();
-    let mut ground = TriangleMesh {
+    let ground = TriangleMesh {
         positions: vec![
             Vec3::new(-30.0, 0.0, -30.0),
             Vec3::new(30.0, 0.0, -30.0),
@@ -42,7 +42,6 @@ fn fixture() -> Fixture {
         indices: vec![[0, 2, 1], [0, 3, 2]],
         shaders: vec![0, 0],
     };
-    ground.shaders = vec![0, 0];
     let ground = library.add(Geometry::new("ground", ground, BuildParams::BALANCED).unwrap());
     let mut soup = random_mesh(&mut rng, 300, 1.0, 0.4);
     soup.shaders = (0..300).map(|i| 1 + i % 2).collect();
@@ -62,7 +61,6 @@ fn fixture() -> Fixture {
             geometry: soup,
         });
     }
-    let _ = GeometryId(0);
     let top_level = TopLevel::build(&library, &descs, BuildParams::BALANCED);
     let checker: Vec<[u8; 4]> = (0..64)
         .map(|i| {
