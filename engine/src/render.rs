@@ -103,52 +103,72 @@ impl<'a> RenderScene<'a> {
         mesh.uvs[i0 as usize] * b.x + mesh.uvs[i1 as usize] * b.y + mesh.uvs[i2 as usize] * b.z
     }
 
-    /// The alpha test run inside traversal: false where the shader's mask has a hole.
+    /// The hit filter run inside traversal: false where the shader's alpha mask has a
+    /// hole, or where a single-sided surface is seen from behind.
     #[inline]
-    fn passes_alpha(&self, candidate: &Candidate, stats: &mut TraversalStats) -> bool {
+    fn passes_filter(
+        &self,
+        candidate: &Candidate,
+        direction: Vec3A,
+        stats: &mut TraversalStats,
+    ) -> bool {
         let shader = self.shader_of(candidate);
-        if !shader.is_alpha_masked() {
+        if !shader.needs_hit_filter() {
             return true;
         }
         stats.filter_tests += 1;
-        let opaque = shader.is_opaque_at(self.uv_of(candidate));
-        stats.filter_rejections += u64::from(!opaque);
-        opaque
+        let passes = (shader.double_sided || self.is_front_side(candidate, direction))
+            && shader.is_opaque_at(self.uv_of(candidate));
+        stats.filter_rejections += u64::from(!passes);
+        passes
     }
 
-    /// The closest opaque hit along `ray`.
+    /// True when `direction` arrives at the candidate triangle's front: the side its
+    /// object-space winding normal points to. Testing in object space makes a mirroring
+    /// instance flip the winding, as glTF requires of negative determinants.
+    #[inline]
+    fn is_front_side(&self, candidate: &Candidate, direction: Vec3A) -> bool {
+        let record = self.top_level.record(candidate.slot as usize);
+        let mesh = &self.geometry.geometries[candidate.geometry.0 as usize].mesh;
+        let [p0, p1, p2] = mesh.triangle(candidate.triangle as usize);
+        let normal = (p1 - p0).cross(p2 - p0);
+        normal.dot(record.world_to_object.transform_vector3a(direction)) < 0.0
+    }
+
+    /// The closest hit along `ray` that the hit filter accepts.
     #[inline]
     pub fn closest(&self, ray: &Ray, stats: &mut TraversalStats) -> Option<Hit> {
-        if !self.shaders.any_alpha_masked() {
+        if !self.shaders.needs_hit_filter() {
             return self
                 .top_level
                 .intersect_closest(self.geometry, ray, stats, |_| true);
         }
-        let mut alpha = TraversalStats::default();
+        let mut filter = TraversalStats::default();
         let hit = self
             .top_level
             .intersect_closest(self.geometry, ray, stats, |c| {
-                self.passes_alpha(c, &mut alpha)
+                self.passes_filter(c, ray.direction, &mut filter)
             });
-        stats.add(&alpha);
+        filter.closest_filter_rejections = filter.filter_rejections;
+        stats.add(&filter);
         hit
     }
 
-    /// True when an opaque hit lies before `ray.t_max`.
+    /// True when a hit the filter accepts lies before `ray.t_max`.
     #[inline]
     pub fn occluded(&self, ray: &Ray, stats: &mut TraversalStats) -> bool {
-        if !self.shaders.any_alpha_masked() {
+        if !self.shaders.needs_hit_filter() {
             return self
                 .top_level
                 .intersect_any(self.geometry, ray, stats, |_| true);
         }
-        let mut alpha = TraversalStats::default();
+        let mut filter = TraversalStats::default();
         let hit = self
             .top_level
             .intersect_any(self.geometry, ray, stats, |c| {
-                self.passes_alpha(c, &mut alpha)
+                self.passes_filter(c, ray.direction, &mut filter)
             });
-        stats.add(&alpha);
+        stats.add(&filter);
         hit
     }
 

@@ -9,14 +9,90 @@ use std::sync::{Arc, OnceLock};
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, PartialOrd, Ord)]
 pub struct ShaderId(pub u32);
 
+/// What a texture does outside [0, 1] along one axis (glTF sampler wrap modes).
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Hash)]
+pub enum WrapMode {
+    /// Tile the image (glTF's default).
+    #[default]
+    Repeat,
+    /// Repeat the edge texels.
+    ClampToEdge,
+    /// Tile the image, mirroring every other copy.
+    MirroredRepeat,
+}
+
+impl WrapMode {
+    /// An integer texel index equivalent to `f` under this mode, small enough that
+    /// `index + 1` cannot overflow even for huge UVs.
+    #[inline]
+    fn reduce(self, f: f32, n: u32) -> i64 {
+        const SAFE: f32 = (1u64 << 40) as f32;
+        if f.abs() < SAFE {
+            return f as i64;
+        }
+        match self {
+            WrapMode::ClampToEdge if f > 0.0 => n as i64,
+            WrapMode::ClampToEdge => -1,
+            // A period of two images keeps both repeating patterns intact.
+            _ => (f as f64).rem_euclid(2.0 * n as f64) as i64,
+        }
+    }
+
+    /// Maps an integer texel index into `0..n`.
+    #[inline]
+    fn wrap(self, i: i64, n: i64) -> i64 {
+        match self {
+            WrapMode::Repeat => i.rem_euclid(n),
+            WrapMode::ClampToEdge => i.clamp(0, n - 1),
+            WrapMode::MirroredRepeat => {
+                let k = i.rem_euclid(2 * n);
+                if k < n { k } else { 2 * n - 1 - k }
+            }
+        }
+    }
+}
+
 /// An RGBA8 texture stored as sRGB-encoded colour and linear alpha, sampled bilinearly
-/// in linear space with repeat wrapping; UV (0, 0) is the image's top-left (glTF).
+/// in linear space; UV (0, 0) is the image's top-left (glTF), wrapping per axis.
 #[derive(Clone, Debug, PartialEq)]
 pub struct Texture {
     width: u32,
     height: u32,
     texels: Vec<[u8; 4]>,
+    wrap: [WrapMode; 2],
     mean_opaque_color: Vec3,
+}
+
+/// `KHR_texture_transform`: scale, then rotate counter-clockwise, then offset, applied
+/// to UVs before sampling.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct UvTransform {
+    /// Added last.
+    pub offset: Vec2,
+    /// Radians.
+    pub rotation: f32,
+    /// Applied first.
+    pub scale: Vec2,
+}
+
+impl Default for UvTransform {
+    fn default() -> Self {
+        Self {
+            offset: Vec2::ZERO,
+            rotation: 0.0,
+            scale: Vec2::ONE,
+        }
+    }
+}
+
+impl UvTransform {
+    /// The transformed coordinates, as the extension's reference shader computes them.
+    #[inline]
+    pub fn apply(&self, uv: Vec2) -> Vec2 {
+        let s = uv * self.scale;
+        let (sin, cos) = self.rotation.sin_cos();
+        Vec2::new(s.x * cos + s.y * sin, s.y * cos - s.x * sin) + self.offset
+    }
 }
 
 /// Why texture data was refused.
@@ -102,8 +178,34 @@ impl Texture {
             width,
             height,
             texels,
+            wrap: [WrapMode::Repeat; 2],
             mean_opaque_color,
         })
+    }
+
+    /// A texture from row-major grey + alpha texels (a two-channel PNG): the grey value
+    /// goes to all three colour channels.
+    pub fn from_gray_alpha8(
+        width: u32,
+        height: u32,
+        texels: &[[u8; 2]],
+    ) -> Result<Self, TextureError> {
+        Self::from_srgba8(
+            width,
+            height,
+            texels.iter().map(|&[l, a]| [l, l, l, a]).collect(),
+        )
+    }
+
+    /// The same texture with other wrap modes along U and V.
+    pub fn with_wrap(mut self, u: WrapMode, v: WrapMode) -> Self {
+        self.wrap = [u, v];
+        self
+    }
+
+    /// Wrap modes along U and V.
+    pub fn wrap(&self) -> [WrapMode; 2] {
+        self.wrap
     }
 
     /// Width in texels.
@@ -124,7 +226,8 @@ impl Texture {
     #[inline]
     fn texel(&self, x: i64, y: i64) -> Vec4 {
         let (w, h) = (self.width as i64, self.height as i64);
-        let t = self.texels[(y.rem_euclid(h) * w + x.rem_euclid(w)) as usize];
+        let (x, y) = (self.wrap[0].wrap(x, w), self.wrap[1].wrap(y, h));
+        let t = self.texels[(y * w + x) as usize];
         let table = srgb_to_linear_table();
         Vec4::new(
             table[t[0] as usize],
@@ -134,8 +237,8 @@ impl Texture {
         )
     }
 
-    /// Bilinear sample in linear RGB + alpha, repeating outside [0, 1]. Non-finite UVs
-    /// sample texel (0, 0).
+    /// Bilinear sample in linear RGB + alpha, wrapped outside [0, 1] by the wrap modes.
+    /// Non-finite UVs sample texel (0, 0).
     #[inline]
     pub fn sample(&self, uv: Vec2) -> Vec4 {
         let uv = if uv.is_finite() { uv } else { Vec2::ZERO };
@@ -143,9 +246,8 @@ impl Texture {
         let y = uv.y * self.height as f32 - 0.5;
         let (fx, fy) = (x.floor(), y.floor());
         let (tx, ty) = (x - fx, y - fy);
-        // Wrap in f64 space first so huge UVs cannot overflow the integer texel index.
-        let ix = (fx as f64).rem_euclid(self.width as f64) as i64;
-        let iy = (fy as f64).rem_euclid(self.height as f64) as i64;
+        let ix = self.wrap[0].reduce(fx, self.width);
+        let iy = self.wrap[1].reduce(fy, self.height);
         let top = self.texel(ix, iy).lerp(self.texel(ix + 1, iy), tx);
         let bottom = self.texel(ix, iy + 1).lerp(self.texel(ix + 1, iy + 1), tx);
         top.lerp(bottom, ty)
@@ -167,8 +269,14 @@ pub struct Shader {
     pub base_color: Vec3,
     /// Colour/alpha texture multiplied with `base_color`.
     pub texture: Option<Arc<Texture>>,
+    /// Applied to UVs before the texture is sampled.
+    pub uv_transform: Option<UvTransform>,
     /// When set (and a texture is present), texels with alpha below it are holes.
     pub alpha_cutoff: Option<f32>,
+    /// When false, the surface is seen from its front only: every ray passes through
+    /// its back (glTF's single-sided materials; the front is where the winding normal,
+    /// transformed by the instance, points).
+    pub double_sided: bool,
 }
 
 impl Shader {
@@ -178,7 +286,9 @@ impl Shader {
             id,
             base_color,
             texture: None,
+            uv_transform: None,
             alpha_cutoff: None,
+            double_sided: true,
         }
     }
 
@@ -188,7 +298,22 @@ impl Shader {
             id,
             base_color,
             texture: Some(texture),
+            uv_transform: None,
             alpha_cutoff: None,
+            double_sided: true,
+        }
+    }
+
+    /// A textured shader whose texels with alpha below `cutoff` are holes.
+    pub fn alpha_masked(
+        id: ShaderId,
+        base_color: Vec3,
+        texture: Arc<Texture>,
+        cutoff: f32,
+    ) -> Self {
+        Self {
+            alpha_cutoff: Some(cutoff),
+            ..Self::textured(id, base_color, texture)
         }
     }
 
@@ -197,11 +322,35 @@ impl Shader {
         self.alpha_cutoff.is_some() && self.texture.is_some()
     }
 
+    /// True when rays must be tested against something during traversal: an alpha mask
+    /// or a single-sided surface.
+    pub fn needs_hit_filter(&self) -> bool {
+        self.is_alpha_masked() || !self.double_sided
+    }
+
+    /// The texture coordinates after the shader's UV transform.
+    #[inline]
+    fn texture_uv(&self, uv: Vec2) -> Vec2 {
+        match &self.uv_transform {
+            Some(t) => t.apply(uv),
+            None => uv,
+        }
+    }
+
     /// Reflectance at `uv`.
     #[inline]
     pub fn albedo(&self, uv: Vec2) -> Vec3 {
         match &self.texture {
-            Some(t) => self.base_color * t.sample(uv).truncate(),
+            Some(t) => self.base_color * t.sample(self.texture_uv(uv)).truncate(),
+            None => self.base_color,
+        }
+    }
+
+    /// The mean colour of the opaque part (base colour × the texture's alpha-weighted
+    /// mean): what adaptive transparency substitutes for a cut-off hit.
+    pub fn mean_opaque_color(&self) -> Vec3 {
+        match &self.texture {
+            Some(t) => self.base_color * t.mean_opaque_color(),
             None => self.base_color,
         }
     }
@@ -210,7 +359,7 @@ impl Shader {
     #[inline]
     pub fn is_opaque_at(&self, uv: Vec2) -> bool {
         match (&self.texture, self.alpha_cutoff) {
-            (Some(t), Some(cutoff)) => t.sample(uv).w >= cutoff,
+            (Some(t), Some(cutoff)) => t.sample(self.texture_uv(uv)).w >= cutoff,
             _ => true,
         }
     }
@@ -221,7 +370,7 @@ impl Shader {
 pub struct ShaderTable {
     shaders: Vec<Shader>,
     fallback: Shader,
-    any_alpha_masked: bool,
+    any_hit_filter: bool,
 }
 
 impl Default for ShaderTable {
@@ -244,11 +393,11 @@ impl ShaderTable {
             let index = s.id.0 as usize;
             table[index] = s;
         }
-        let any_alpha_masked = table.iter().any(Shader::is_alpha_masked);
+        let any_hit_filter = table.iter().any(Shader::needs_hit_filter);
         Self {
             shaders: table,
             fallback,
-            any_alpha_masked,
+            any_hit_filter,
         }
     }
 
@@ -258,9 +407,10 @@ impl ShaderTable {
         self.shaders.get(id as usize).unwrap_or(&self.fallback)
     }
 
-    /// True when any shader cuts holes (the kernel skips alpha tests otherwise).
-    pub fn any_alpha_masked(&self) -> bool {
-        self.any_alpha_masked
+    /// True when any shader cuts holes or is single-sided (the kernel skips hit filters
+    /// otherwise).
+    pub fn needs_hit_filter(&self) -> bool {
+        self.any_hit_filter
     }
 
     /// Number of slots.
@@ -298,6 +448,79 @@ mod tests {
         );
         assert!(t.sample(Vec2::new(f32::NAN, 0.0)).is_finite());
         assert!(t.sample(Vec2::new(1e30, -1e30)).is_finite());
+    }
+
+    #[test]
+    fn wrap_modes_follow_gltf() {
+        // One row: black, white. Texel centres at u = 0.25 and 0.75.
+        let t = Texture::from_srgba8(2, 1, vec![[0, 0, 0, 255], [255, 255, 255, 255]]).unwrap();
+        let red = |t: &Texture, u: f32| t.sample(Vec2::new(u, 0.5)).x;
+        // Repeat: u + 1 is u.
+        assert_eq!(red(&t, 1.25), 0.0);
+        assert_eq!(red(&t, -0.25), 1.0);
+        let clamp = t
+            .clone()
+            .with_wrap(WrapMode::ClampToEdge, WrapMode::ClampToEdge);
+        assert_eq!(red(&clamp, 1.25), 1.0);
+        assert_eq!(red(&clamp, 7.0), 1.0);
+        assert_eq!(red(&clamp, -3.0), 0.0);
+        assert_eq!(red(&clamp, 1e30), 1.0);
+        assert_eq!(red(&clamp, -1e30), 0.0);
+        let mirror = t.with_wrap(WrapMode::MirroredRepeat, WrapMode::Repeat);
+        // [1, 2) is the image mirrored: white then black.
+        assert_eq!(red(&mirror, 1.25), 1.0);
+        assert_eq!(red(&mirror, 1.75), 0.0);
+        assert_eq!(red(&mirror, 2.25), 0.0);
+        assert_eq!(red(&mirror, -0.25), 0.0);
+        assert_eq!(red(&mirror, -0.75), 1.0);
+        assert!(mirror.sample(Vec2::new(3e9, -7e12)).is_finite());
+    }
+
+    #[test]
+    fn gray_alpha_expands_to_grey_colour_and_keeps_alpha() {
+        let t = Texture::from_gray_alpha8(1, 1, &[[128, 64]]).unwrap();
+        let s = t.sample(Vec2::splat(0.5));
+        let grey = srgb_to_linear(128.0 / 255.0);
+        assert!(
+            (s - Vec4::new(grey, grey, grey, 64.0 / 255.0))
+                .abs()
+                .max_element()
+                < 1e-6
+        );
+    }
+
+    #[test]
+    fn colour_is_decoded_to_linear_before_filtering() {
+        // Halfway between sRGB black and white is linear 0.5, not sRGB 0.5.
+        let t = Texture::from_srgba8(2, 1, vec![[0, 0, 0, 255], [255, 255, 255, 255]])
+            .unwrap()
+            .with_wrap(WrapMode::ClampToEdge, WrapMode::ClampToEdge);
+        assert!((t.sample(Vec2::new(0.5, 0.5)).x - 0.5).abs() < 1e-6);
+    }
+
+    #[test]
+    fn uv_transform_matches_the_extension() {
+        let t = UvTransform {
+            offset: Vec2::new(0.5, 0.25),
+            rotation: std::f32::consts::FRAC_PI_2,
+            scale: Vec2::new(2.0, 3.0),
+        };
+        // (1, 0) → scaled (2, 0) → rotated (0, -2) → offset (0.5, -1.75).
+        assert!((t.apply(Vec2::X) - Vec2::new(0.5, -1.75)).length() < 1e-6);
+        assert_eq!(
+            UvTransform::default().apply(Vec2::new(0.3, 0.7)),
+            Vec2::new(0.3, 0.7)
+        );
+        let texture =
+            Arc::new(Texture::from_srgba8(2, 1, vec![[0, 0, 0, 0], [255, 255, 255, 255]]).unwrap());
+        let mut shader = Shader::alpha_masked(ShaderId(0), Vec3::ONE, texture, 0.5);
+        assert!(!shader.is_opaque_at(Vec2::new(0.25, 0.5)));
+        shader.uv_transform = Some(UvTransform {
+            offset: Vec2::new(0.5, 0.0),
+            ..Default::default()
+        });
+        assert!(shader.is_opaque_at(Vec2::new(0.25, 0.5)));
+        assert_eq!(shader.albedo(Vec2::new(0.25, 0.5)), Vec3::ONE);
     }
 
     #[test]

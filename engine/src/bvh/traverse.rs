@@ -22,6 +22,8 @@ pub struct TraversalStats {
     pub filter_tests: u64,
     /// Candidate hits a filter rejected: transparency segments passed through.
     pub filter_rejections: u64,
+    /// The part of `filter_rejections` met by closest-hit (camera) rays.
+    pub closest_filter_rejections: u64,
 }
 
 impl TraversalStats {
@@ -33,6 +35,12 @@ impl TraversalStats {
         self.primitive_tests += other.primitive_tests;
         self.filter_tests += other.filter_tests;
         self.filter_rejections += other.filter_rejections;
+        self.closest_filter_rejections += other.closest_filter_rejections;
+    }
+
+    /// Mean transparency segments (alpha holes passed) per closest-hit ray.
+    pub fn segments_per_closest_ray(&self) -> f64 {
+        self.closest_filter_rejections as f64 / self.closest_rays.max(1) as f64
     }
 
     /// All rays traced.
