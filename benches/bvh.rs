@@ -24,6 +24,7 @@ fn blas(c: &mut Criterion) {
             amplitude: 10.0,
             wavelength: 80.0,
             octaves: 6,
+            ridged: false,
         },
     )
     .to_mesh(0, 4.0);

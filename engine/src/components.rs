@@ -77,3 +77,7 @@ pub struct Instance {
 /// An instance left out of rendering while it has this marker.
 #[derive(Component, Clone, Copy, Debug, Default, PartialEq, Eq)]
 pub struct Hidden;
+
+/// The vegetation layer a plant belongs to (index into its scene's layer list).
+#[derive(Component, Clone, Copy, Debug, PartialEq, Eq, Hash)]
+pub struct Layer(pub u32);

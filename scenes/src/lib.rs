@@ -1,27 +1,33 @@
 //! # sylva_scenes
 //!
-//! Builds worlds: procedural species, terrain, ecosystem layout, and the embedded default
-//! scene `meadow`. A [`SceneBuild`] is plain data (geometry with BLASes, shaders,
-//! placements, lights, camera); [`spawn`] turns it into entities and resources of a
-//! bevy `World`. Same seed, same scene.
+//! Builds worlds: procedural species, terrain, ecosystems in vegetation layers (the
+//! presets `meadow`, `forest`, `paper`), TOML scene files and glTF import. A
+//! [`SceneBuild`] is plain data (geometry with BLASes, shaders, placements, lights,
+//! camera); [`spawn`] turns it into entities and resources of a bevy `World`, and
+//! [`plant_at`] / [`move_plant`] place plants one by one afterwards. Same seed, same scene.
 
-pub mod meadow;
+pub mod ecosystem;
+#[cfg(feature = "gltf")]
+pub mod gltf;
+pub mod placement;
 pub mod random;
+pub mod scene_file;
 pub mod species;
 pub mod terrain;
 
 use bevy_ecs::prelude::*;
+use std::path::PathBuf;
 use std::time::Duration;
 use sylva_engine::camera::Camera;
-use sylva_engine::components::{Instance, Transform};
+use sylva_engine::components::{Instance, Layer, Transform};
 use sylva_engine::geometry::{GeometryId, GeometryLibrary};
 use sylva_engine::light::{DirectionalLight, SkyLight};
 use sylva_engine::mesh::MeshError;
 use sylva_engine::shading::Shader;
 use sylva_engine::tlas::{InstanceDesc, InstanceRecord};
 
-/// Names of the built-in scenes.
-pub const SCENE_NAMES: &[&str] = &["meadow"];
+pub use ecosystem::PRESETS as SCENE_NAMES;
+use terrain::HeightField;
 
 /// Why a scene could not be built.
 #[derive(Debug, thiserror::Error)]
@@ -42,6 +48,31 @@ pub enum SceneError {
         /// The defect.
         source: MeshError,
     },
+    /// A species' model could not be loaded.
+    #[error("scene '{scene}', species '{species}': {source}")]
+    Species {
+        /// Scene name.
+        scene: String,
+        /// Species name.
+        species: String,
+        /// Why.
+        source: Box<SceneError>,
+    },
+    /// A scene file could not be read or is invalid.
+    #[error(transparent)]
+    SceneFile(#[from] scene_file::SceneFileError),
+    /// A glTF file could not be imported.
+    #[cfg(feature = "gltf")]
+    #[error(transparent)]
+    Gltf(#[from] gltf::GltfError),
+    /// The input needs a cargo feature this build left out.
+    #[error("{}: reading this needs the '{feature}' cargo feature, which this build left out", path.display())]
+    FeatureDisabled {
+        /// The feature.
+        feature: &'static str,
+        /// The file.
+        path: PathBuf,
+    },
 }
 
 /// A plant species: a name and its mesh.
@@ -53,6 +84,21 @@ pub struct Species {
     pub geometry: GeometryId,
 }
 
+/// One placed plant.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Plant {
+    /// Its species' mesh.
+    pub geometry: GeometryId,
+    /// Where it stands.
+    pub transform: Transform,
+    /// Its layer (index into [`SceneBuild::layers`]).
+    pub layer: u32,
+}
+
+/// The height field plants stand on, as a world resource for placing plants later.
+#[derive(Clone, Debug, Resource)]
+pub struct Terrain(pub HeightField);
+
 /// A scene as plain data, ready to [`spawn`].
 #[derive(Clone, Debug)]
 pub struct SceneBuild {
@@ -62,12 +108,16 @@ pub struct SceneBuild {
     pub library: GeometryLibrary,
     /// The plant species (the terrain is not one).
     pub species: Vec<Species>,
+    /// Names of the vegetation layers.
+    pub layers: Vec<String>,
     /// The terrain mesh, instanced once at the origin.
     pub terrain: Option<GeometryId>,
+    /// The terrain's height field (for placing plants on it).
+    pub height_field: Option<HeightField>,
     /// Shaders (one entity each).
     pub shaders: Vec<Shader>,
     /// Plant placements (one entity each).
-    pub plants: Vec<(GeometryId, Transform)>,
+    pub plants: Vec<Plant>,
     /// The sun.
     pub sun: Option<DirectionalLight>,
     /// The sky.
@@ -100,9 +150,9 @@ pub struct SceneStats {
 impl SceneBuild {
     /// Every instance as the TLAS takes it: the plants, then the terrain at the origin.
     pub fn instance_descs(&self) -> Vec<InstanceDesc> {
-        let plants = self.plants.iter().map(|(geometry, t)| InstanceDesc {
-            transform: t.to_affine(),
-            geometry: *geometry,
+        let plants = self.plants.iter().map(|p| InstanceDesc {
+            transform: p.transform.to_affine(),
+            geometry: p.geometry,
         });
         let terrain = self.terrain.map(|geometry| InstanceDesc {
             transform: glam::Affine3A::IDENTITY,
@@ -116,7 +166,7 @@ impl SceneBuild {
         let tri = |g: GeometryId| self.library.get(g).map_or(0, |g| g.mesh.triangle_count()) as u64;
         let instances = self.plants.len() + usize::from(self.terrain.is_some());
         let instanced_triangles =
-            self.plants.iter().map(|(g, _)| tri(*g)).sum::<u64>() + self.terrain.map_or(0, tri);
+            self.plants.iter().map(|p| tri(p.geometry)).sum::<u64>() + self.terrain.map_or(0, tri);
         // A TLAS holds one record per instance and about two nodes per leaf of four.
         let tlas_bytes = instances * (std::mem::size_of::<InstanceRecord>() + 4 + 16);
         SceneStats {
@@ -129,11 +179,15 @@ impl SceneBuild {
     }
 }
 
-/// Builds a built-in scene by name.
+/// Builds a preset by name, or the scene file at that path when it ends in `.toml`.
 pub fn build_scene(name: &str, seed: u64) -> Result<SceneBuild, SceneError> {
-    match name {
-        "meadow" => meadow::build(seed, &meadow::MeadowParams::default()),
-        _ => Err(SceneError::UnknownScene { name: name.into() }),
+    if name.ends_with(".toml") {
+        let file = scene_file::SceneFile::load(std::path::Path::new(name))?;
+        return ecosystem::build(&file.spec, file.seed.unwrap_or(seed));
+    }
+    match ecosystem::EcosystemSpec::preset(name) {
+        Some(spec) => ecosystem::build(&spec, seed),
+        None => Err(SceneError::UnknownScene { name: name.into() }),
     }
 }
 
@@ -146,10 +200,13 @@ pub struct SpawnedScene {
     pub plants: Vec<Entity>,
 }
 
-/// Moves a scene into `world`: the geometry library becomes a resource; shaders, plants,
-/// the terrain, lights and the camera become entities.
+/// Moves a scene into `world`: the geometry library and the terrain's height field become
+/// resources; shaders, plants, the terrain, lights and the camera become entities.
 pub fn spawn(world: &mut World, scene: SceneBuild) -> SpawnedScene {
     world.insert_resource(scene.library);
+    if let Some(field) = scene.height_field {
+        world.insert_resource(Terrain(field));
+    }
     for shader in scene.shaders {
         world.spawn(shader);
     }
@@ -157,12 +214,15 @@ pub fn spawn(world: &mut World, scene: SceneBuild) -> SpawnedScene {
         world.spawn((Transform::IDENTITY, Instance { geometry: terrain }));
     }
     let plants = world
-        .spawn_batch(
-            scene
-                .plants
-                .into_iter()
-                .map(|(geometry, t)| (t, Instance { geometry })),
-        )
+        .spawn_batch(scene.plants.into_iter().map(|p| {
+            (
+                p.transform,
+                Instance {
+                    geometry: p.geometry,
+                },
+                Layer(p.layer),
+            )
+        }))
         .collect();
     if let Some(sun) = scene.sun {
         world.spawn(sun);
@@ -172,6 +232,47 @@ pub fn spawn(world: &mut World, scene: SceneBuild) -> SpawnedScene {
     }
     let camera = world.spawn((scene.camera, scene.camera_transform)).id();
     SpawnedScene { camera, plants }
+}
+
+/// Spawns one plant of `species` standing on the terrain at `(x, z)`, turned by `yaw`
+/// radians and scaled by `scale` (at height 0 when the world has no [`Terrain`]). The
+/// next frame's `rebuild_top_level` picks it up.
+pub fn plant_at(
+    world: &mut World,
+    species: GeometryId,
+    x: f32,
+    z: f32,
+    yaw: f32,
+    scale: f32,
+) -> Entity {
+    let transform = ground_transform(world, x, z, yaw, scale);
+    world
+        .spawn((transform, Instance { geometry: species }))
+        .id()
+}
+
+/// Moves a plant to stand on the terrain at `(x, z)`; false when the entity is not a plant.
+pub fn move_plant(world: &mut World, plant: Entity, x: f32, z: f32, yaw: f32, scale: f32) -> bool {
+    let transform = ground_transform(world, x, z, yaw, scale);
+    if world.get::<Instance>(plant).is_none() {
+        return false;
+    }
+    match world.get_mut::<Transform>(plant) {
+        Some(mut t) => {
+            *t = transform;
+            true
+        }
+        None => false,
+    }
+}
+
+fn ground_transform(world: &World, x: f32, z: f32, yaw: f32, scale: f32) -> Transform {
+    let y = world
+        .get_resource::<Terrain>()
+        .map_or(0.0, |t| t.0.height_at(x, z));
+    Transform::from_translation(glam::Vec3::new(x, y, z))
+        .with_rotation(glam::Quat::from_rotation_y(yaw))
+        .with_scale(glam::Vec3::splat(scale))
 }
 
 #[cfg(test)]
@@ -185,9 +286,12 @@ mod tests {
         let plants = scene
             .plants
             .iter()
-            .map(|(g, t)| {
-                let a = t.to_affine().to_cols_array();
-                (g.0, [0, 1, 2, 3, 4, 5, 6, 7, 8, 9].map(|i| a[i].to_bits()))
+            .map(|p| {
+                let a = p.transform.to_affine().to_cols_array();
+                (
+                    p.geometry.0,
+                    [0, 1, 2, 3, 4, 5, 6, 7, 8, 9].map(|i| a[i].to_bits()),
+                )
             })
             .collect();
         let meshes = scene
@@ -207,7 +311,7 @@ mod tests {
         assert_eq!(fingerprint(&a), fingerprint(&b));
         assert_ne!(fingerprint(&a).0, fingerprint(&c).0);
         let stats = a.stats();
-        assert_eq!(stats.species, 3);
+        assert_eq!(stats.species, 5);
         assert!(
             stats.instances > 2000 && stats.unique_triangles > 300_000,
             "{stats:?}"
@@ -231,6 +335,6 @@ mod tests {
         assert!(world.get::<Camera>(spawned.camera).is_some());
         let instances = world.query::<&Instance>().iter(&world).count();
         assert_eq!(instances, plants + 1, "plants plus the terrain");
-        assert_eq!(world.query::<&Shader>().iter(&world).count(), 5);
+        assert_eq!(world.query::<&Shader>().iter(&world).count(), 11);
     }
 }

@@ -1,9 +1,35 @@
 //! Height-field terrain: a grid of heights from fBm noise, sampled bilinearly for plant
 //! placement and meshed as two triangles per cell.
 
-use crate::random::fbm;
+use crate::random::{SceneRng, fbm};
 use glam::{Vec2, Vec3};
 use sylva_engine::mesh::TriangleMesh;
+use sylva_engine::shading::Texture;
+
+/// A 128×128 ground texture: grass green mottled with soil.
+pub fn ground_texture(seed: u64) -> Texture {
+    let n = 128u32;
+    let mut rng = SceneRng::new(seed, "ground_texture");
+    let texels = (0..n * n)
+        .map(|i| {
+            let (x, y) = ((i % n) as f32 / n as f32, (i / n) as f32 / n as f32);
+            let soil = (fbm(seed, x * 6.0, y * 6.0, 4, 0.5) * 1.5 + 0.1).clamp(0.0, 1.0);
+            let grain = rng.range(-0.06, 0.06);
+            let grass = [0.30, 0.42, 0.16];
+            let dirt = [0.42, 0.33, 0.22];
+            let c: [f32; 3] = std::array::from_fn(|k| {
+                (grass[k] + (dirt[k] - grass[k]) * soil + grain).clamp(0.0, 1.0)
+            });
+            [
+                (c[0] * 255.0) as u8,
+                (c[1] * 255.0) as u8,
+                (c[2] * 255.0) as u8,
+                255,
+            ]
+        })
+        .collect();
+    Texture::from_srgba8(n, n, texels).expect("the ground texture has n×n texels")
+}
 
 /// A square height field centred on the origin, +Y up.
 #[derive(Clone, Debug, PartialEq)]
@@ -29,6 +55,8 @@ pub struct TerrainParams {
     pub wavelength: f32,
     /// Noise octaves.
     pub octaves: u32,
+    /// Ridged noise (sharp crests, 1 − |fBm|) instead of rolling fBm hills.
+    pub ridged: bool,
 }
 
 impl HeightField {
@@ -43,7 +71,9 @@ impl HeightField {
                     (i % n) as f32 * step - p.size / 2.0,
                     (i / n) as f32 * step - p.size / 2.0,
                 );
-                p.amplitude * fbm(seed, x / p.wavelength, z / p.wavelength, p.octaves, 0.45)
+                let v = fbm(seed, x / p.wavelength, z / p.wavelength, p.octaves, 0.45);
+                let v = if p.ridged { 1.0 - 2.0 * v.abs() } else { v };
+                p.amplitude * v
             })
             .collect();
         Self {
@@ -122,6 +152,7 @@ mod tests {
             amplitude: 2.0,
             wavelength: 5.0,
             octaves: 3,
+            ridged: false,
         };
         let h = HeightField::fbm(3, &p);
         assert_eq!(h.height_at(-5.0, -5.0), h.heights[0]);

@@ -1,0 +1,713 @@
+//! Ecosystems in vegetation layers, after Table 1 of Dietrich et al.: a terrain, layers
+//! of species placed by Poisson-disk rules, a sun, a sky and a camera. An
+//! [`EcosystemSpec`] is plain data (the presets `meadow`, `forest` and `paper` are three
+//! of them; scene files describe others) and [`build`] turns it into a [`SceneBuild`].
+
+use crate::placement::{PlacementRule, poisson_disk};
+use crate::random::SceneRng;
+use crate::species::{self, LeafShape, PlantKind, PlantParams};
+use crate::terrain::{HeightField, TerrainParams, ground_texture};
+use crate::{Plant, SceneBuild, SceneError, Species};
+use glam::{Quat, Vec2, Vec3};
+use rayon::prelude::*;
+use std::path::PathBuf;
+use std::sync::Arc;
+use std::time::Instant;
+use sylva_engine::bvh::BuildParams;
+use sylva_engine::camera::Camera;
+use sylva_engine::components::Transform;
+use sylva_engine::geometry::{Geometry, GeometryLibrary};
+use sylva_engine::light::{DirectionalLight, SkyLight};
+use sylva_engine::mesh::TriangleMesh;
+use sylva_engine::shading::{Shader, ShaderId};
+
+/// Where a species' model comes from.
+#[derive(Clone, Debug, PartialEq)]
+pub enum SpeciesSource {
+    /// The procedural generator.
+    Procedural {
+        /// Growth form.
+        kind: PlantKind,
+        /// Height in metres.
+        height: f32,
+        /// Triangle budget.
+        triangles: u32,
+        /// Leaf outline (the kind's usual one when `None`).
+        leaf_shape: Option<LeafShape>,
+        /// Linear RGB leaf colour (a seeded one when `None`).
+        leaf_color: Option<Vec3>,
+        /// Seed of the model.
+        seed: u64,
+    },
+    /// A glTF/GLB file: all its mesh nodes baked into one model, +Y up, base at the
+    /// origin as the file has it.
+    Gltf {
+        /// The file.
+        path: PathBuf,
+    },
+}
+
+/// A species of a layer.
+#[derive(Clone, Debug, PartialEq)]
+pub struct SpeciesSpec {
+    /// Display name.
+    pub name: String,
+    /// The model.
+    pub source: SpeciesSource,
+    /// Relative frequency within its layer.
+    pub weight: f32,
+}
+
+/// A vegetation layer: its species and how they are placed.
+#[derive(Clone, Debug, PartialEq)]
+pub struct LayerSpec {
+    /// Display name ("higher haulm", …).
+    pub name: String,
+    /// Species, picked per plant by weight.
+    pub species: Vec<SpeciesSpec>,
+    /// Plants in the layer.
+    pub count: u32,
+    /// Uniform instance scale range.
+    pub scale: (f32, f32),
+    /// Minimum distance between plants of this layer (automatic when `None`).
+    pub min_spacing: Option<f32>,
+    /// 0 = uniform, towards 1 = clustered.
+    pub clustering: f32,
+    /// Rectangle `[x0, z0, x1, z1]`; the whole terrain when `None`.
+    pub region: Option<[f32; 4]>,
+}
+
+/// The sun as a direction and an irradiance.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct SunSpec {
+    /// Degrees above the horizon.
+    pub elevation: f32,
+    /// Degrees from +Z towards +X.
+    pub azimuth: f32,
+    /// Linear RGB irradiance on a surface facing the sun.
+    pub irradiance: Vec3,
+}
+
+impl SunSpec {
+    /// The light it becomes.
+    pub fn light(&self) -> DirectionalLight {
+        let (e, a) = (self.elevation.to_radians(), self.azimuth.to_radians());
+        DirectionalLight {
+            direction: Vec3::new(e.cos() * a.sin(), e.sin(), e.cos() * a.cos()),
+            irradiance: self.irradiance,
+        }
+    }
+}
+
+/// The camera, placed relative to the terrain surface.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct CameraSpec {
+    /// Eye `(x, z)` in metres.
+    pub eye: Vec2,
+    /// Eye height above the ground.
+    pub eye_height: f32,
+    /// Target `(x, z)`.
+    pub target: Vec2,
+    /// Target height above the ground.
+    pub target_height: f32,
+    /// Vertical field of view in degrees.
+    pub fov: f32,
+}
+
+/// A whole ecosystem as data.
+#[derive(Clone, Debug, PartialEq)]
+pub struct EcosystemSpec {
+    /// Scene name.
+    pub name: String,
+    /// Terrain shape.
+    pub terrain: TerrainParams,
+    /// Vegetation layers.
+    pub layers: Vec<LayerSpec>,
+    /// Plants closer than this to the camera's eye (metres) are pushed out to this
+    /// distance, so the camera does not stand in a bush.
+    pub clear_radius: f32,
+    /// The sun.
+    pub sun: Option<SunSpec>,
+    /// The sky.
+    pub sky: Option<SkyLight>,
+    /// The view.
+    pub camera: CameraSpec,
+}
+
+/// Names of the presets.
+pub const PRESETS: &[&str] = &["meadow", "forest", "paper"];
+
+/// `n` procedural species of `kind` with heights in `heights` and triangle budgets
+/// spread ±25 % around `triangles` (the mean stays `triangles`).
+fn procedural(
+    prefix: &str,
+    kind: PlantKind,
+    n: u32,
+    heights: (f32, f32),
+    triangles: u32,
+    seed: u64,
+) -> Vec<SpeciesSpec> {
+    let mut rng = SceneRng::new(seed, prefix);
+    (0..n)
+        .map(|i| {
+            let spread = if n > 1 {
+                -0.25 + 0.5 * i as f32 / (n - 1) as f32
+            } else {
+                0.0
+            };
+            SpeciesSpec {
+                name: format!("{prefix} {}", i + 1),
+                source: SpeciesSource::Procedural {
+                    kind,
+                    height: rng.range(heights.0, heights.1),
+                    triangles: (triangles as f32 * (1.0 + spread)).round() as u32,
+                    leaf_shape: None,
+                    leaf_color: None,
+                    seed: rng.next_u64(),
+                },
+                weight: 1.0,
+            }
+        })
+        .collect()
+}
+
+fn layer(name: &str, species: Vec<SpeciesSpec>, count: u32) -> LayerSpec {
+    LayerSpec {
+        name: name.into(),
+        species,
+        count,
+        scale: (0.8, 1.2),
+        min_spacing: None,
+        clustering: 0.0,
+        region: None,
+    }
+}
+
+fn default_sky() -> SkyLight {
+    SkyLight {
+        zenith: Vec3::new(0.22, 0.42, 0.95),
+        horizon: Vec3::new(0.75, 0.85, 1.0),
+        ground: Vec3::new(0.12, 0.11, 0.08),
+    }
+}
+
+fn default_sun() -> SunSpec {
+    SunSpec {
+        elevation: 38.0,
+        azimuth: -50.0,
+        irradiance: Vec3::new(3.2, 3.0, 2.7),
+    }
+}
+
+impl EcosystemSpec {
+    /// A preset by name.
+    pub fn preset(name: &str) -> Option<Self> {
+        match name {
+            "meadow" => Some(Self::meadow()),
+            "forest" => Some(Self::forest()),
+            "paper" => Some(Self::paper()),
+            _ => None,
+        }
+    }
+
+    /// The embedded default: a small meadow (200 m, 6,880 plants of 5 species), grass
+    /// dense in front of an eye-height camera.
+    pub fn meadow() -> Self {
+        let seed = 0x6d65_6164;
+        let grass = procedural("meadow grass", PlantKind::Grass, 2, (0.35, 0.55), 300, seed);
+        let herbs = procedural("meadow herb", PlantKind::Herb, 1, (0.3, 0.45), 600, seed);
+        let near = [-20.0, 10.0, 20.0, 50.0];
+        Self {
+            name: "meadow".into(),
+            terrain: TerrainParams {
+                size: 200.0,
+                cells: 400,
+                amplitude: 7.0,
+                wavelength: 70.0,
+                octaves: 6,
+                ridged: false,
+            },
+            layers: vec![
+                LayerSpec {
+                    region: Some(near),
+                    ..layer("near haulm", [grass.clone(), herbs.clone()].concat(), 3000)
+                },
+                LayerSpec {
+                    region: Some([-70.0, -70.0, 70.0, 70.0]),
+                    clustering: 0.3,
+                    ..layer("higher haulm", [grass, herbs].concat(), 3000)
+                },
+                LayerSpec {
+                    region: Some([-70.0, -70.0, 70.0, 70.0]),
+                    clustering: 0.8,
+                    scale: (0.6, 1.4),
+                    ..layer(
+                        "shrubs",
+                        procedural(
+                            "meadow shrub",
+                            PlantKind::LowShrub,
+                            1,
+                            (0.8, 1.0),
+                            1500,
+                            seed,
+                        ),
+                        800,
+                    )
+                },
+                LayerSpec {
+                    region: Some([-70.0, -70.0, 70.0, 70.0]),
+                    min_spacing: Some(7.0),
+                    scale: (0.7, 1.3),
+                    ..layer(
+                        "trees",
+                        procedural("meadow tree", PlantKind::LowTree, 1, (5.0, 5.5), 8000, seed),
+                        80,
+                    )
+                },
+            ],
+            clear_radius: 2.5,
+            sun: Some(default_sun()),
+            sky: Some(default_sky()),
+            camera: CameraSpec {
+                eye: Vec2::new(0.0, 45.0),
+                eye_height: 1.7,
+                target: Vec2::ZERO,
+                target_height: 2.0,
+                fov: 55.0,
+            },
+        }
+    }
+
+    /// A medium forest: 10,000 plants of 19 species in the paper's six layers on
+    /// 120 m × 120 m.
+    pub fn forest() -> Self {
+        let seed = 0x666f_7265;
+        let haulm = [
+            procedural("forest grass", PlantKind::Grass, 3, (0.3, 0.7), 1000, seed),
+            procedural("forest herb", PlantKind::Herb, 1, (0.3, 0.5), 1000, seed),
+        ]
+        .concat();
+        Self {
+            name: "forest".into(),
+            terrain: TerrainParams {
+                size: 120.0,
+                cells: 400,
+                amplitude: 5.0,
+                wavelength: 60.0,
+                octaves: 6,
+                ridged: false,
+            },
+            layers: vec![
+                LayerSpec {
+                    clustering: 0.4,
+                    ..layer("higher haulm", haulm, 5500)
+                },
+                LayerSpec {
+                    clustering: 0.5,
+                    ..layer(
+                        "lower shrub",
+                        procedural(
+                            "forest low shrub",
+                            PlantKind::LowShrub,
+                            3,
+                            (0.5, 1.0),
+                            3000,
+                            seed,
+                        ),
+                        2600,
+                    )
+                },
+                LayerSpec {
+                    clustering: 0.6,
+                    ..layer(
+                        "higher shrub",
+                        procedural(
+                            "forest high shrub",
+                            PlantKind::HighShrub,
+                            3,
+                            (1.5, 3.5),
+                            10_000,
+                            seed,
+                        ),
+                        1200,
+                    )
+                },
+                layer(
+                    "lower tree",
+                    procedural(
+                        "forest low tree",
+                        PlantKind::LowTree,
+                        3,
+                        (4.0, 8.0),
+                        25_000,
+                        seed,
+                    ),
+                    450,
+                ),
+                layer(
+                    "higher tree",
+                    procedural(
+                        "forest high tree",
+                        PlantKind::HighTree,
+                        3,
+                        (10.0, 16.0),
+                        40_000,
+                        seed,
+                    ),
+                    200,
+                ),
+                layer(
+                    "overlap tree",
+                    procedural(
+                        "forest large tree",
+                        PlantKind::LargeTree,
+                        3,
+                        (18.0, 26.0),
+                        60_000,
+                        seed,
+                    ),
+                    50,
+                ),
+            ],
+            clear_radius: 2.0,
+            sun: Some(default_sun()),
+            sky: Some(default_sky()),
+            camera: CameraSpec {
+                eye: Vec2::new(-8.0, 62.0),
+                eye_height: 2.2,
+                target: Vec2::new(0.0, 20.0),
+                target_height: 4.0,
+                fov: 60.0,
+            },
+        }
+    }
+
+    /// The paper's ecosystem at full scale: 68 species and 365,041 plants in the six
+    /// layers of Table 1 on a 300 m × 300 m, 2 M-triangle height field.
+    pub fn paper() -> Self {
+        let seed = 0x7061_7065;
+        let haulm = [
+            procedural("haulm grass", PlantKind::Grass, 15, (0.3, 0.9), 1000, seed),
+            procedural("haulm herb", PlantKind::Herb, 5, (0.3, 0.7), 1000, seed),
+        ]
+        .concat();
+        let low_shrub = [
+            procedural("low shrub", PlantKind::LowShrub, 14, (0.4, 1.0), 5000, seed),
+            procedural("tall herb", PlantKind::Herb, 6, (0.6, 1.0), 5000, seed),
+        ]
+        .concat();
+        Self {
+            name: "paper".into(),
+            terrain: TerrainParams {
+                size: 300.0,
+                cells: 1000,
+                amplitude: 10.0,
+                wavelength: 120.0,
+                octaves: 7,
+                ridged: false,
+            },
+            layers: vec![
+                LayerSpec {
+                    clustering: 0.3,
+                    ..layer("higher haulm", haulm, 204_750)
+                },
+                LayerSpec {
+                    clustering: 0.5,
+                    ..layer("lower shrub", low_shrub, 144_091)
+                },
+                LayerSpec {
+                    clustering: 0.6,
+                    ..layer(
+                        "higher shrub",
+                        procedural(
+                            "high shrub",
+                            PlantKind::HighShrub,
+                            12,
+                            (1.5, 4.0),
+                            25_000,
+                            seed,
+                        ),
+                        10_464,
+                    )
+                },
+                layer(
+                    "lower tree",
+                    procedural("low tree", PlantKind::LowTree, 8, (4.0, 8.0), 50_000, seed),
+                    5_209,
+                ),
+                layer(
+                    "higher tree",
+                    procedural(
+                        "high tree",
+                        PlantKind::HighTree,
+                        5,
+                        (10.0, 18.0),
+                        75_000,
+                        seed,
+                    ),
+                    290,
+                ),
+                layer(
+                    "overlap tree",
+                    procedural(
+                        "large tree",
+                        PlantKind::LargeTree,
+                        3,
+                        (18.0, 30.0),
+                        100_000,
+                        seed,
+                    ),
+                    237,
+                ),
+            ],
+            clear_radius: 2.0,
+            sun: Some(default_sun()),
+            sky: Some(default_sky()),
+            camera: CameraSpec {
+                eye: Vec2::new(0.0, 60.0),
+                eye_height: 1.8,
+                target: Vec2::new(0.0, 0.0),
+                target_height: 3.0,
+                fov: 60.0,
+            },
+        }
+    }
+}
+
+/// A species model ready for the library: a mesh whose triangles name shaders by local
+/// index into `shaders`.
+#[derive(Clone, Debug)]
+pub struct SpeciesModel {
+    /// The mesh.
+    pub mesh: TriangleMesh,
+    /// Its shaders; their ids are ignored and replaced by the scene's.
+    pub shaders: Vec<Shader>,
+}
+
+/// Bark and alpha-masked leaf shaders for a generated plant.
+fn procedural_model(source: &SpeciesSource) -> Option<SpeciesModel> {
+    let SpeciesSource::Procedural {
+        kind,
+        height,
+        triangles,
+        leaf_shape,
+        leaf_color,
+        seed,
+    } = source
+    else {
+        return None;
+    };
+    let mut params = PlantParams::for_kind(*kind, *height, *triangles, *seed);
+    if let Some(shape) = leaf_shape {
+        params.leaf_shape = *shape;
+    }
+    if let Some(color) = leaf_color {
+        params.leaf_color = *color;
+    }
+    let model = species::generate(&params, *seed);
+    Some(SpeciesModel {
+        mesh: model.mesh,
+        shaders: vec![
+            Shader::color(ShaderId(species::BARK), model.bark_color),
+            Shader::alpha_masked(
+                ShaderId(species::LEAF),
+                Vec3::ONE,
+                Arc::new(model.leaf_texture),
+                0.5,
+            ),
+        ],
+    })
+}
+
+fn load_model(spec: &SpeciesSpec, scene: &str) -> Result<SpeciesModel, SceneError> {
+    if let Some(model) = procedural_model(&spec.source) {
+        return Ok(model);
+    }
+    let SpeciesSource::Gltf { path } = &spec.source else {
+        unreachable!("every non-procedural source is a glTF file");
+    };
+    load_gltf_species(path).map_err(|source| SceneError::Species {
+        scene: scene.into(),
+        species: spec.name.clone(),
+        source: Box::new(source),
+    })
+}
+
+#[cfg(feature = "gltf")]
+fn load_gltf_species(path: &std::path::Path) -> Result<SpeciesModel, SceneError> {
+    let scene = crate::gltf::import(path)?;
+    Ok(scene.bake())
+}
+
+#[cfg(not(feature = "gltf"))]
+fn load_gltf_species(path: &std::path::Path) -> Result<SpeciesModel, SceneError> {
+    Err(SceneError::FeatureDisabled {
+        feature: "gltf",
+        path: path.to_path_buf(),
+    })
+}
+
+/// Builds the ecosystem: terrain, every species (generated and BLAS-built in parallel on
+/// the current rayon pool), placements layer by layer, lights and camera.
+pub fn build(spec: &EcosystemSpec, seed: u64) -> Result<SceneBuild, SceneError> {
+    let start = Instant::now();
+    let terrain = HeightField::fbm(seed, &spec.terrain);
+    let species_specs: Vec<(usize, &SpeciesSpec)> = spec
+        .layers
+        .iter()
+        .enumerate()
+        .flat_map(|(l, layer)| layer.species.iter().map(move |s| (l, s)))
+        .collect();
+    // One model per distinct species (layers may share species).
+    let mut distinct: Vec<&SpeciesSpec> = Vec::new();
+    for (_, s) in &species_specs {
+        if !distinct.contains(s) {
+            distinct.push(s);
+        }
+    }
+    let (terrain_mesh, models) = rayon::join(
+        || terrain.to_mesh(0, 4.0),
+        || {
+            distinct
+                .par_iter()
+                .map(|s| load_model(s, &spec.name))
+                .collect::<Result<Vec<_>, _>>()
+        },
+    );
+    let models = models?;
+    let mut shaders = vec![Shader::textured(
+        ShaderId(0),
+        Vec3::ONE,
+        Arc::new(ground_texture(seed)),
+    )];
+    let meshes: Vec<(String, TriangleMesh)> =
+        std::iter::once(("terrain".to_string(), terrain_mesh))
+            .chain(distinct.iter().zip(models).map(|(s, model)| {
+                let offset = shaders.len() as u32;
+                let mut mesh = model.mesh;
+                let local = model.shaders.len() as u32;
+                for id in &mut mesh.shaders {
+                    *id = offset + (*id).min(local.saturating_sub(1));
+                }
+                for (k, mut shader) in model.shaders.into_iter().enumerate() {
+                    shader.id = ShaderId(offset + k as u32);
+                    shaders.push(shader);
+                }
+                (s.name.clone(), mesh)
+            }))
+            .collect();
+    let generate_time = start.elapsed();
+
+    let build_start = Instant::now();
+    let geometries: Vec<Geometry> = meshes
+        .into_par_iter()
+        .map(|(name, mesh)| {
+            Geometry::new(&name, mesh, BuildParams::BALANCED).map_err(|e| SceneError::Mesh {
+                scene: spec.name.clone(),
+                mesh: name.clone(),
+                source: e,
+            })
+        })
+        .collect::<Result<_, _>>()?;
+    let mut library = GeometryLibrary::default();
+    let ids: Vec<_> = geometries.into_iter().map(|g| library.add(g)).collect();
+    let blas_time = build_start.elapsed();
+
+    let place_start = Instant::now();
+    let eye = spec.camera.eye;
+    let half = spec.terrain.size / 2.0;
+    let layer_plants: Vec<Vec<Plant>> = spec
+        .layers
+        .par_iter()
+        .enumerate()
+        .map(|(l, layer)| {
+            let layer_seed = seed ^ sylva_engine::sampling::mix64(l as u64 + 1);
+            let region = layer.region.unwrap_or([-half, -half, half, half]);
+            let points = poisson_disk(
+                &PlacementRule {
+                    count: layer.count,
+                    region,
+                    min_spacing: layer.min_spacing,
+                    clustering: layer.clustering,
+                    cluster_size: 12.0,
+                },
+                layer_seed,
+            );
+            let weights: Vec<f32> = layer.species.iter().map(|s| s.weight.max(0.0)).collect();
+            let total: f32 = weights.iter().sum();
+            let mut rng = SceneRng::new(layer_seed, "plants");
+            points
+                .into_iter()
+                .map(|p| {
+                    // Push plants out of the clearing rather than dropping them, so a
+                    // layer keeps its exact count.
+                    let away = p - eye;
+                    if away.length() < spec.clear_radius {
+                        eye + away.normalize_or(Vec2::X) * spec.clear_radius
+                    } else {
+                        p
+                    }
+                })
+                .filter_map(|p| {
+                    let mut pick = rng.f32() * total;
+                    let chosen = weights
+                        .iter()
+                        .position(|&w| {
+                            pick -= w;
+                            pick < 0.0
+                        })
+                        .unwrap_or(weights.len().checked_sub(1)?);
+                    let index = distinct.iter().position(|d| *d == &layer.species[chosen])?;
+                    let scale = rng.range(layer.scale.0, layer.scale.1.max(layer.scale.0));
+                    let yaw = Quat::from_rotation_y(rng.range(0.0, std::f32::consts::TAU));
+                    let tilt = Quat::from_rotation_x(rng.range(-0.05, 0.05))
+                        * Quat::from_rotation_z(rng.range(-0.05, 0.05));
+                    let y = terrain.height_at(p.x, p.y) - 0.02 * scale;
+                    Some(Plant {
+                        geometry: ids[1 + index],
+                        transform: Transform::from_translation(Vec3::new(p.x, y, p.y))
+                            .with_rotation(tilt * yaw)
+                            .with_scale(Vec3::splat(scale)),
+                        layer: l as u32,
+                    })
+                })
+                .collect()
+        })
+        .collect();
+    let plants: Vec<Plant> = layer_plants.into_iter().flatten().collect();
+    let place_time = place_start.elapsed();
+
+    let ground =
+        |xz: Vec2, above: f32| Vec3::new(xz.x, terrain.height_at(xz.x, xz.y) + above, xz.y);
+    let camera_transform = Transform::looking_at(
+        ground(spec.camera.eye, spec.camera.eye_height),
+        ground(spec.camera.target, spec.camera.target_height),
+        Vec3::Y,
+    );
+    Ok(SceneBuild {
+        name: spec.name.clone(),
+        library,
+        species: distinct
+            .iter()
+            .enumerate()
+            .map(|(i, s)| Species {
+                name: s.name.clone(),
+                geometry: ids[1 + i],
+            })
+            .collect(),
+        layers: spec.layers.iter().map(|l| l.name.clone()).collect(),
+        terrain: Some(ids[0]),
+        height_field: Some(terrain),
+        shaders,
+        plants,
+        sun: spec.sun.map(|s| s.light()),
+        sky: spec.sky,
+        camera: Camera {
+            vertical_fov: spec.camera.fov.to_radians(),
+            ..Camera::default()
+        },
+        camera_transform,
+        generate_time: generate_time + place_time,
+        blas_time,
+    })
+}

@@ -1,0 +1,680 @@
+//! TOML scene files: name a preset and override parts of it, or describe an ecosystem
+//! from scratch (terrain, layers with species, sun, sky, camera). Unknown keys are
+//! errors; every error names the file, the line and column, and the key.
+//!
+//! ```toml
+//! preset = "meadow"        # optional starting point
+//! seed = 7                 # optional (the CLI's --seed otherwise)
+//!
+//! [terrain]
+//! size = 150.0             # metres
+//! cells = 300              # per edge, two triangles each (≤ 2048)
+//! amplitude = 6.0
+//! wavelength = 60.0
+//! octaves = 6
+//! noise = "ridged"         # or "fbm"
+//!
+//! [[layer]]                # layers given here replace the preset's
+//! name = "grass"
+//! count = 2000
+//! scale = [0.8, 1.2]
+//! min_spacing = 0.5        # optional
+//! clustering = 0.3         # 0 … 1
+//! region = [-40, -40, 40, 40]
+//!
+//! [[layer.species]]
+//! name = "tall grass"
+//! kind = "grass"           # grass, herb, low_shrub, high_shrub, low_tree, high_tree, large_tree
+//! height = 0.6
+//! triangles = 1000
+//! leaf = "blades"          # optional: blades, ellipse, lanceolate, lobed, compound, needles
+//! leaf_color = [0.3, 0.5, 0.15]   # optional, sRGB
+//! seed = 3                 # optional
+//! weight = 2.0             # optional
+//!
+//! [[layer.species]]
+//! name = "imported tree"
+//! gltf = "models/tree.glb" # relative to this file
+//!
+//! [sun]
+//! elevation = 40.0         # degrees
+//! azimuth = -50.0
+//! irradiance = [3.2, 3.0, 2.7]
+//!
+//! [sky]
+//! zenith = [0.22, 0.42, 0.95]
+//! horizon = [0.75, 0.85, 1.0]
+//! ground = [0.12, 0.11, 0.08]
+//!
+//! [camera]
+//! eye = [0.0, 45.0]        # x, z; the height is above the ground
+//! eye_height = 1.7
+//! target = [0.0, 0.0]
+//! target_height = 2.0
+//! fov = 55.0
+//! ```
+
+use crate::ecosystem::{
+    CameraSpec, EcosystemSpec, LayerSpec, PRESETS, SpeciesSource, SpeciesSpec, SunSpec,
+};
+use crate::species::{LeafShape, PlantKind};
+use glam::{Vec2, Vec3};
+use serde::Deserialize;
+use std::ops::Range;
+use std::path::{Path, PathBuf};
+use sylva_engine::light::SkyLight;
+use sylva_engine::shading::srgb_to_linear;
+use toml::Spanned;
+
+/// Why a scene file was refused.
+#[derive(Debug, thiserror::Error)]
+#[error("{}{}: {}{message}", path.display(), location.map(|(l, c)| format!(":{l}:{c}")).unwrap_or_default(), key.as_deref().map(|k| format!("{k}: ")).unwrap_or_default())]
+pub struct SceneFileError {
+    /// The file.
+    pub path: PathBuf,
+    /// 1-based line and column, when known.
+    pub location: Option<(usize, usize)>,
+    /// The key, as a dotted path (`layer[1].species[0].kind`).
+    pub key: Option<String>,
+    /// What is wrong.
+    pub message: String,
+}
+
+/// A parsed scene file.
+#[derive(Clone, Debug, PartialEq)]
+pub struct SceneFile {
+    /// The ecosystem it describes.
+    pub spec: EcosystemSpec,
+    /// Its seed, when it gives one.
+    pub seed: Option<u64>,
+}
+
+#[derive(Deserialize)]
+#[serde(deny_unknown_fields)]
+struct Document {
+    preset: Option<Spanned<String>>,
+    name: Option<String>,
+    seed: Option<u64>,
+    clear_radius: Option<Spanned<f32>>,
+    terrain: Option<TerrainDoc>,
+    layer: Option<Vec<LayerDoc>>,
+    sun: Option<SunDoc>,
+    sky: Option<SkyDoc>,
+    camera: Option<CameraDoc>,
+}
+
+#[derive(Deserialize)]
+#[serde(deny_unknown_fields)]
+struct TerrainDoc {
+    size: Option<Spanned<f32>>,
+    cells: Option<Spanned<u32>>,
+    amplitude: Option<Spanned<f32>>,
+    wavelength: Option<Spanned<f32>>,
+    octaves: Option<Spanned<u32>>,
+    noise: Option<Spanned<String>>,
+}
+
+#[derive(Deserialize)]
+#[serde(deny_unknown_fields)]
+struct LayerDoc {
+    name: String,
+    count: Spanned<u32>,
+    scale: Option<Spanned<[f32; 2]>>,
+    min_spacing: Option<Spanned<f32>>,
+    clustering: Option<Spanned<f32>>,
+    region: Option<Spanned<[f32; 4]>>,
+    species: Spanned<Vec<SpeciesDoc>>,
+}
+
+#[derive(Deserialize)]
+#[serde(deny_unknown_fields)]
+struct SpeciesDoc {
+    name: Spanned<String>,
+    kind: Option<Spanned<String>>,
+    height: Option<Spanned<f32>>,
+    triangles: Option<Spanned<u32>>,
+    leaf: Option<Spanned<String>>,
+    leaf_color: Option<Spanned<[f32; 3]>>,
+    seed: Option<u64>,
+    weight: Option<Spanned<f32>>,
+    gltf: Option<Spanned<String>>,
+}
+
+#[derive(Deserialize)]
+#[serde(deny_unknown_fields)]
+struct SunDoc {
+    elevation: Spanned<f32>,
+    azimuth: Spanned<f32>,
+    irradiance: Option<Spanned<[f32; 3]>>,
+}
+
+#[derive(Deserialize)]
+#[serde(deny_unknown_fields)]
+struct SkyDoc {
+    zenith: Spanned<[f32; 3]>,
+    horizon: Spanned<[f32; 3]>,
+    ground: Spanned<[f32; 3]>,
+}
+
+#[derive(Deserialize)]
+#[serde(deny_unknown_fields)]
+struct CameraDoc {
+    eye: [f32; 2],
+    eye_height: Option<Spanned<f32>>,
+    target: [f32; 2],
+    target_height: Option<Spanned<f32>>,
+    fov: Option<Spanned<f32>>,
+}
+
+/// Turns byte spans into line/column and builds errors.
+struct Context<'a> {
+    path: &'a Path,
+    text: &'a str,
+}
+
+impl Context<'_> {
+    fn location(&self, span: Range<usize>) -> (usize, usize) {
+        let before = &self.text[..span.start.min(self.text.len())];
+        let line = before.matches('\n').count() + 1;
+        let column = before.len() - before.rfind('\n').map_or(0, |i| i + 1) + 1;
+        (line, column)
+    }
+
+    /// The dotted key assigned on the line holding byte `at` (`terrain.cells`), from the
+    /// line itself and the nearest table header above it.
+    fn key_at(&self, at: usize) -> Option<String> {
+        let before = &self.text[..at.min(self.text.len())];
+        let line_start = before.rfind('\n').map_or(0, |i| i + 1);
+        let line = self.text[line_start..].lines().next()?;
+        let (key, _) = line.split_once('=')?;
+        let key = key.trim();
+        if key.is_empty()
+            || !key
+                .chars()
+                .all(|c| c.is_alphanumeric() || "_.-".contains(c))
+        {
+            return None;
+        }
+        let table = before[..line_start]
+            .lines()
+            .rev()
+            .map(str::trim)
+            .find(|l| l.starts_with('['))
+            .map(|l| l.trim_matches(|c| c == '[' || c == ']').trim().to_string());
+        Some(match table {
+            Some(t) => format!("{t}.{key}"),
+            None => key.to_string(),
+        })
+    }
+
+    fn error(&self, span: Option<Range<usize>>, key: &str, message: String) -> SceneFileError {
+        SceneFileError {
+            path: self.path.to_path_buf(),
+            location: span.map(|s| self.location(s)),
+            key: Some(key.to_string()),
+            message,
+        }
+    }
+
+    /// A number that must lie in `range` (inclusive) and be finite.
+    fn check<T: Copy + PartialOrd + std::fmt::Display>(
+        &self,
+        value: &Spanned<T>,
+        key: &str,
+        low: T,
+        high: T,
+    ) -> Result<T, SceneFileError> {
+        let v = *value.get_ref();
+        // NaN fails both comparisons.
+        if v >= low && v <= high {
+            Ok(v)
+        } else {
+            Err(self.error(
+                Some(value.span()),
+                key,
+                format!("{v} is out of range ({low} … {high})"),
+            ))
+        }
+    }
+
+    fn color(
+        &self,
+        value: &Spanned<[f32; 3]>,
+        key: &str,
+        high: f32,
+    ) -> Result<Vec3, SceneFileError> {
+        let c = *value.get_ref();
+        if c.iter().all(|v| (0.0..=high).contains(v)) {
+            Ok(Vec3::from(c))
+        } else {
+            Err(self.error(
+                Some(value.span()),
+                key,
+                format!("{c:?}: every component must lie in 0 … {high}"),
+            ))
+        }
+    }
+}
+
+impl SceneFile {
+    /// Reads and validates a scene file; relative glTF paths resolve against its folder.
+    pub fn load(path: &Path) -> Result<Self, SceneFileError> {
+        let text = std::fs::read_to_string(path).map_err(|e| SceneFileError {
+            path: path.to_path_buf(),
+            location: None,
+            key: None,
+            message: format!("cannot read: {e}"),
+        })?;
+        Self::parse(&text, path)
+    }
+
+    /// Parses scene-file text; `path` names it in errors and anchors relative paths.
+    pub fn parse(text: &str, path: &Path) -> Result<Self, SceneFileError> {
+        let cx = Context { path, text };
+        let doc: Document = toml::from_str(text).map_err(|e| SceneFileError {
+            path: path.to_path_buf(),
+            location: e.span().map(|s| cx.location(s)),
+            key: e.span().and_then(|s| cx.key_at(s.start)),
+            message: e.message().trim().to_string(),
+        })?;
+        let mut spec = match &doc.preset {
+            Some(name) => EcosystemSpec::preset(name.get_ref()).ok_or_else(|| {
+                cx.error(
+                    Some(name.span()),
+                    "preset",
+                    format!(
+                        "unknown preset '{}' (available: {})",
+                        name.get_ref(),
+                        PRESETS.join(", ")
+                    ),
+                )
+            })?,
+            None => {
+                let mut empty = EcosystemSpec::meadow();
+                empty.layers.clear();
+                empty
+            }
+        };
+        spec.name = doc.name.clone().unwrap_or_else(|| {
+            path.file_stem()
+                .map_or("scene".into(), |s| s.to_string_lossy().into_owned())
+        });
+        if let Some(r) = &doc.clear_radius {
+            spec.clear_radius = cx.check(r, "clear_radius", 0.0, 1e4)?;
+        }
+        if let Some(t) = &doc.terrain {
+            let p = &mut spec.terrain;
+            if let Some(v) = &t.size {
+                p.size = cx.check(v, "terrain.size", 1.0, 1e5)?;
+            }
+            if let Some(v) = &t.cells {
+                p.cells = cx.check(v, "terrain.cells", 1, 2048)?;
+            }
+            if let Some(v) = &t.amplitude {
+                p.amplitude = cx.check(v, "terrain.amplitude", 0.0, 1e4)?;
+            }
+            if let Some(v) = &t.wavelength {
+                p.wavelength = cx.check(v, "terrain.wavelength", 0.01, 1e6)?;
+            }
+            if let Some(v) = &t.octaves {
+                p.octaves = cx.check(v, "terrain.octaves", 1, 16)?;
+            }
+            if let Some(v) = &t.noise {
+                p.ridged = match v.get_ref().as_str() {
+                    "fbm" => false,
+                    "ridged" => true,
+                    other => {
+                        return Err(cx.error(
+                            Some(v.span()),
+                            "terrain.noise",
+                            format!("unknown noise '{other}' (expected fbm or ridged)"),
+                        ));
+                    }
+                };
+            }
+        }
+        if let Some(layers) = &doc.layer {
+            spec.layers = layers
+                .iter()
+                .enumerate()
+                .map(|(i, l)| layer(&cx, l, i))
+                .collect::<Result<_, _>>()?;
+        }
+        if let Some(s) = &doc.sun {
+            spec.sun = Some(SunSpec {
+                elevation: cx.check(&s.elevation, "sun.elevation", -90.0, 90.0)?,
+                azimuth: cx.check(&s.azimuth, "sun.azimuth", -360.0, 360.0)?,
+                irradiance: match &s.irradiance {
+                    Some(v) => cx.color(v, "sun.irradiance", 1e6)?,
+                    None => Vec3::new(3.2, 3.0, 2.7),
+                },
+            });
+        }
+        if let Some(s) = &doc.sky {
+            spec.sky = Some(SkyLight {
+                zenith: cx.color(&s.zenith, "sky.zenith", 1e6)?,
+                horizon: cx.color(&s.horizon, "sky.horizon", 1e6)?,
+                ground: cx.color(&s.ground, "sky.ground", 1e6)?,
+            });
+        }
+        if let Some(c) = &doc.camera {
+            let finite = |v: [f32; 2], key: &str| {
+                if v.iter().all(|x| x.is_finite()) {
+                    Ok(Vec2::from(v))
+                } else {
+                    Err(cx.error(None, key, format!("{v:?} is not finite")))
+                }
+            };
+            spec.camera = CameraSpec {
+                eye: finite(c.eye, "camera.eye")?,
+                eye_height: match &c.eye_height {
+                    Some(v) => cx.check(v, "camera.eye_height", -1e4, 1e5)?,
+                    None => 1.7,
+                },
+                target: finite(c.target, "camera.target")?,
+                target_height: match &c.target_height {
+                    Some(v) => cx.check(v, "camera.target_height", -1e4, 1e5)?,
+                    None => 1.7,
+                },
+                fov: match &c.fov {
+                    Some(v) => cx.check(v, "camera.fov", 1.0, 170.0)?,
+                    None => 55.0,
+                },
+            };
+        }
+        Ok(SceneFile {
+            spec,
+            seed: doc.seed,
+        })
+    }
+}
+
+fn layer(cx: &Context, doc: &LayerDoc, i: usize) -> Result<LayerSpec, SceneFileError> {
+    let key = |k: &str| format!("layer[{i}].{k}");
+    let count = cx.check(&doc.count, &key("count"), 0, 10_000_000)?;
+    let scale = match &doc.scale {
+        Some(s) => {
+            let [lo, hi] = *s.get_ref();
+            if !(lo > 0.0 && hi >= lo && hi < 1e4) {
+                return Err(cx.error(
+                    Some(s.span()),
+                    &key("scale"),
+                    format!("[{lo}, {hi}] must satisfy 0 < low ≤ high"),
+                ));
+            }
+            (lo, hi)
+        }
+        None => (0.8, 1.2),
+    };
+    let region = match &doc.region {
+        Some(r) => {
+            let [x0, z0, x1, z1] = *r.get_ref();
+            if !(x0 < x1 && z0 < z1) || [x0, z0, x1, z1].iter().any(|v| !v.is_finite()) {
+                return Err(cx.error(
+                    Some(r.span()),
+                    &key("region"),
+                    "expected [x0, z0, x1, z1] with x0 < x1 and z0 < z1".into(),
+                ));
+            }
+            Some([x0, z0, x1, z1])
+        }
+        None => None,
+    };
+    if doc.species.get_ref().is_empty() && count > 0 {
+        return Err(cx.error(
+            Some(doc.species.span()),
+            &key("species"),
+            "a layer with plants needs at least one species".into(),
+        ));
+    }
+    let species = doc
+        .species
+        .get_ref()
+        .iter()
+        .enumerate()
+        .map(|(j, s)| species(cx, s, &format!("layer[{i}].species[{j}]")))
+        .collect::<Result<_, _>>()?;
+    Ok(LayerSpec {
+        name: doc.name.clone(),
+        species,
+        count,
+        scale,
+        min_spacing: doc
+            .min_spacing
+            .as_ref()
+            .map(|v| cx.check(v, &key("min_spacing"), 0.0, 1e4))
+            .transpose()?,
+        clustering: doc
+            .clustering
+            .as_ref()
+            .map(|v| cx.check(v, &key("clustering"), 0.0, 1.0))
+            .transpose()?
+            .unwrap_or(0.0),
+        region,
+    })
+}
+
+fn species(cx: &Context, doc: &SpeciesDoc, key: &str) -> Result<SpeciesSpec, SceneFileError> {
+    let k = |f: &str| format!("{key}.{f}");
+    let weight = doc
+        .weight
+        .as_ref()
+        .map(|v| cx.check(v, &k("weight"), 0.0, 1e6))
+        .transpose()?
+        .unwrap_or(1.0);
+    let name = doc.name.get_ref().clone();
+    if let Some(file) = &doc.gltf {
+        if let Some(kind) = &doc.kind {
+            return Err(cx.error(
+                Some(kind.span()),
+                &k("kind"),
+                "a species comes either from `gltf` or from `kind`, not both".into(),
+            ));
+        }
+        let base = cx.path.parent().unwrap_or(Path::new("."));
+        return Ok(SpeciesSpec {
+            name,
+            source: SpeciesSource::Gltf {
+                path: base.join(file.get_ref()),
+            },
+            weight,
+        });
+    }
+    let Some(kind_name) = &doc.kind else {
+        return Err(cx.error(
+            Some(doc.name.span()),
+            key,
+            "a species needs `kind` (procedural) or `gltf` (a model file)".into(),
+        ));
+    };
+    let kind = PlantKind::from_name(kind_name.get_ref()).ok_or_else(|| {
+        cx.error(
+            Some(kind_name.span()),
+            &k("kind"),
+            format!(
+                "unknown kind '{}' (expected {})",
+                kind_name.get_ref(),
+                PlantKind::ALL.map(PlantKind::name).join(", ")
+            ),
+        )
+    })?;
+    let leaf_shape = doc
+        .leaf
+        .as_ref()
+        .map(|l| {
+            LeafShape::from_name(l.get_ref()).ok_or_else(|| {
+                cx.error(
+                    Some(l.span()),
+                    &k("leaf"),
+                    format!(
+                        "unknown leaf shape '{}' (expected {})",
+                        l.get_ref(),
+                        LeafShape::ALL.map(LeafShape::name).join(", ")
+                    ),
+                )
+            })
+        })
+        .transpose()?;
+    let leaf_color = doc
+        .leaf_color
+        .as_ref()
+        .map(|c| {
+            cx.color(c, &k("leaf_color"), 1.0)
+                .map(|c| c.map(srgb_to_linear))
+        })
+        .transpose()?;
+    Ok(SpeciesSpec {
+        name,
+        source: SpeciesSource::Procedural {
+            kind,
+            height: doc
+                .height
+                .as_ref()
+                .map(|v| cx.check(v, &k("height"), 0.01, 500.0))
+                .transpose()?
+                .unwrap_or(kind.typical_height()),
+            triangles: doc
+                .triangles
+                .as_ref()
+                .map(|v| cx.check(v, &k("triangles"), 16, 2_000_000))
+                .transpose()?
+                .unwrap_or(2000),
+            leaf_shape,
+            leaf_color,
+            seed: doc.seed.unwrap_or_else(|| {
+                // Stable per name, so reordering species does not change them.
+                doc.name
+                    .get_ref()
+                    .bytes()
+                    .fold(0xcbf2_9ce4_8422_2325u64, |h, b| {
+                        (h ^ b as u64).wrapping_mul(0x1000_0000_01b3)
+                    })
+            }),
+        },
+        weight,
+    })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn parse(text: &str) -> Result<SceneFile, SceneFileError> {
+        SceneFile::parse(text, Path::new("scenes/my.toml"))
+    }
+
+    #[test]
+    fn a_preset_with_overrides() {
+        let file =
+            parse("preset = \"forest\"\nseed = 9\n[terrain]\ncells = 50\nnoise = \"ridged\"\n")
+                .unwrap();
+        assert_eq!(file.seed, Some(9));
+        assert_eq!(file.spec.terrain.cells, 50);
+        assert!(file.spec.terrain.ridged);
+        assert_eq!(file.spec.layers, EcosystemSpec::forest().layers);
+        assert_eq!(file.spec.name, "my");
+    }
+
+    #[test]
+    fn layers_species_and_relative_gltf_paths() {
+        let file = parse(
+            r#"
+[[layer]]
+name = "grass"
+count = 40
+clustering = 0.5
+region = [-5, -5, 5, 5]
+[[layer.species]]
+name = "g"
+kind = "grass"
+height = 0.4
+triangles = 300
+leaf = "blades"
+leaf_color = [1.0, 0.5, 0.0]
+[[layer.species]]
+name = "t"
+gltf = "models/tree.glb"
+weight = 0.5
+[camera]
+eye = [0, 8]
+target = [0, 0]
+"#,
+        )
+        .unwrap();
+        let layer = &file.spec.layers[0];
+        assert_eq!((layer.count, layer.clustering), (40, 0.5));
+        assert_eq!(layer.region, Some([-5.0, -5.0, 5.0, 5.0]));
+        match &layer.species[0].source {
+            SpeciesSource::Procedural {
+                kind, leaf_color, ..
+            } => {
+                assert_eq!(*kind, PlantKind::Grass);
+                assert_eq!(*leaf_color, Some(Vec3::new(1.0, srgb_to_linear(0.5), 0.0)));
+            }
+            other => panic!("{other:?}"),
+        }
+        assert_eq!(
+            layer.species[1].source,
+            SpeciesSource::Gltf {
+                path: PathBuf::from("scenes/models/tree.glb")
+            }
+        );
+        assert_eq!(file.spec.camera.eye, Vec2::new(0.0, 8.0));
+    }
+
+    #[test]
+    fn errors_name_file_line_and_key() {
+        let cases = [
+            (
+                "[terrain]\nsize = 10\nbumpiness = 3\n",
+                "my.toml:3:1",
+                "bumpiness",
+            ),
+            (
+                "[terrain]\ncells = \"many\"\n",
+                "my.toml:2:9: terrain.cells",
+                "u32",
+            ),
+            (
+                "[terrain]\ncells = 5000\n",
+                "my.toml:2:9: terrain.cells",
+                "out of range",
+            ),
+            (
+                "preset = \"jungle\"\n",
+                "my.toml:1:10: preset",
+                "meadow, forest, paper",
+            ),
+            (
+                "[[layer]]\nname = \"a\"\ncount = 3\n[[layer.species]]\nname = \"x\"\nkind = \"tre\"\n",
+                "my.toml:6:8: layer[0].species[0].kind",
+                "unknown kind 'tre'",
+            ),
+            (
+                "[[layer]]\nname = \"a\"\ncount = 3\nspecies = []\n",
+                "layer[0].species",
+                "at least one species",
+            ),
+            (
+                "[[layer]]\nname = \"a\"\ncount = 3\nscale = [2, 1]\nspecies = []\n",
+                "my.toml:4:9: layer[0].scale",
+                "low ≤ high",
+            ),
+            (
+                "[sun]\nelevation = nan\nazimuth = 0\n",
+                "my.toml:2:13: sun.elevation",
+                "out of range",
+            ),
+            ("[terrain\n", "my.toml:1:", ""),
+        ];
+        for (text, place, what) in cases {
+            let e = parse(text).unwrap_err().to_string();
+            assert!(e.contains(place) && e.contains(what), "{text:?} gave: {e}");
+        }
+        let missing = SceneFile::load(Path::new("/nonexistent/scene.toml")).unwrap_err();
+        assert!(
+            missing.to_string().contains("/nonexistent/scene.toml"),
+            "{missing}"
+        );
+    }
+}

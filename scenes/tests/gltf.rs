@@ -1,0 +1,541 @@
+//! glTF import against the Khronos conformance models in `../shared/assets`: each test
+//! checks the property its model exists to test, plus bad files that must give errors
+//! naming the file and the glTF path.
+#![cfg(feature = "gltf")]
+
+use glam::{Vec2, Vec3, Vec3A};
+use std::path::{Path, PathBuf};
+use sylva_engine::bvh::{BuildParams, TraversalStats};
+use sylva_engine::camera::CameraView;
+use sylva_engine::light::LightSet;
+use sylva_engine::math::Ray;
+use sylva_engine::render::RenderScene;
+use sylva_engine::shading::ShaderTable;
+use sylva_engine::tlas::TopLevel;
+use sylva_scenes::SceneBuild;
+use sylva_scenes::gltf::{CameraChoice, GltfScene, import};
+
+fn asset(relative: &str) -> PathBuf {
+    Path::new(env!("CARGO_MANIFEST_DIR"))
+        .join("../../shared/assets")
+        .join(relative)
+}
+
+fn model(name: &str) -> PathBuf {
+    asset(&format!("gltf/{name}/glTF-Binary/{name}.glb"))
+}
+
+/// A scene ready for ray queries.
+struct Queryable {
+    scene: SceneBuild,
+    top_level: TopLevel,
+    shaders: ShaderTable,
+    lights: LightSet,
+}
+
+impl Queryable {
+    fn new(imported: GltfScene) -> Self {
+        let scene = imported.into_scene(&CameraChoice::First).unwrap();
+        let top_level = TopLevel::build(
+            &scene.library,
+            &scene.instance_descs(),
+            BuildParams::BALANCED,
+        );
+        let shaders = ShaderTable::new(scene.shaders.clone());
+        Self {
+            scene,
+            top_level,
+            shaders,
+            lights: LightSet::default(),
+        }
+    }
+
+    fn kernel(&self) -> RenderScene<'_> {
+        RenderScene {
+            geometry: &self.scene.library,
+            top_level: &self.top_level,
+            shaders: &self.shaders,
+            lights: &self.lights,
+        }
+    }
+}
+
+#[test]
+fn simple_instancing_yields_125_distinct_instances_in_both_encodings() {
+    for path in [
+        asset("gltf/SimpleInstancing/glTF/SimpleInstancing.gltf"),
+        model("SimpleInstancing"),
+    ] {
+        let scene = import(&path).unwrap();
+        assert_eq!(scene.instances.len(), 125, "{}", path.display());
+        let mut origins: Vec<[u32; 3]> = scene
+            .instances
+            .iter()
+            .map(|i| i.transform.translation.to_array().map(f32::to_bits))
+            .collect();
+        origins.sort_unstable();
+        origins.dedup();
+        assert_eq!(origins.len(), 125, "every instance stands elsewhere");
+        // No material: everything uses the default (last) slot.
+        let default = scene.shaders.len() as u32 - 1;
+        assert!(scene.meshes[0].mesh.shaders.iter().all(|&s| s == default));
+    }
+}
+
+/// Alpha (0–1) of an RGBA or grey+alpha image decoded by the gltf crate itself, at
+/// integer texel `(x, y)`.
+fn raw_alpha(image: &gltf::image::Data, x: u32, y: u32) -> f32 {
+    let channels = match image.format {
+        gltf::image::Format::R8G8B8A8 => 4,
+        gltf::image::Format::R8G8 => 2,
+        _ => return 1.0,
+    };
+    let i = ((y * image.width + x) as usize + 1) * channels - 1;
+    image.pixels[i] as f32 / 255.0
+}
+
+#[test]
+fn alpha_modes_cut_holes_exactly_where_alpha_is_below_the_cutoff() {
+    let path = model("AlphaBlendModeTest");
+    let imported = import(&path).unwrap();
+    let by_name = |name: &str| {
+        let (document, _, _) = gltf::import(&path).unwrap();
+        document
+            .materials()
+            .find(|m| m.name() == Some(name))
+            .and_then(|m| m.index())
+            .unwrap()
+    };
+    let cutoffs = [
+        ("MatOpaque", None),
+        ("MatBlend", Some(0.5)),
+        ("MatCutoff25", Some(0.25)),
+        ("MatCutoffDefault", Some(0.5)),
+        ("MatCutoff75", Some(0.75)),
+    ];
+    for (name, cutoff) in cutoffs {
+        assert_eq!(
+            imported.shaders[by_name(name)].alpha_cutoff,
+            cutoff,
+            "{name}"
+        );
+    }
+    // The oracle: the gltf crate's own decoding of the images, read texel by texel.
+    let (document, _, images) = gltf::import(&path).unwrap();
+    let q = Queryable::new(imported);
+    let kernel = q.kernel();
+    let mut checked = [0usize; 2];
+    for (name, cutoff) in cutoffs {
+        let material = document.materials().nth(by_name(name)).unwrap();
+        let image = &images[material
+            .pbr_metallic_roughness()
+            .base_color_texture()
+            .unwrap()
+            .texture()
+            .source()
+            .index()];
+        let slot = by_name(name) as u32;
+        for (i, plant) in q.scene.plants.iter().enumerate() {
+            let mesh = &q.scene.library.get(plant.geometry).unwrap().mesh;
+            let transform = plant.transform.to_affine();
+            for t in 0..mesh.triangle_count() {
+                if mesh.shaders[t] != slot {
+                    continue;
+                }
+                let [a, b, c] = mesh.indices[t].map(|k| k as usize);
+                for k in 0..40 {
+                    // Deterministic points spread over the triangle.
+                    let (u, v) = (
+                        (k as f32 * 0.618_034).fract(),
+                        (k as f32 * 0.414_214).fract(),
+                    );
+                    let (u, v) = if u + v > 1.0 {
+                        (1.0 - u, 1.0 - v)
+                    } else {
+                        (u, v)
+                    };
+                    // Keep off the edges: a ray through a mesh's outer corner may miss.
+                    let (u, v) = (0.02 + 0.96 * u, 0.02 + 0.96 * v);
+                    let (u, v) = (u / (1.0 + 0.04), v / (1.0 + 0.04));
+                    let w = 1.0 - u - v;
+                    let uv = mesh.uvs[a] * w + mesh.uvs[b] * u + mesh.uvs[c] * v;
+                    let p = mesh.positions[a] * w + mesh.positions[b] * u + mesh.positions[c] * v;
+                    let n = (mesh.positions[b] - mesh.positions[a])
+                        .cross(mesh.positions[c] - mesh.positions[a]);
+                    let world = transform.transform_point3(p);
+                    let normal = transform.matrix3.inverse().transpose() * Vec3A::from(n);
+                    let normal = Vec3::from(normal).normalize();
+                    // Bilinear filtering mixes four texels: judge only where all four
+                    // agree on which side of the cutoff they lie.
+                    let (tx, ty) = (
+                        uv.x * image.width as f32 - 0.5,
+                        uv.y * image.height as f32 - 0.5,
+                    );
+                    let (x0, y0) = (tx.floor() as i64, ty.floor() as i64);
+                    let texel = |x: i64, y: i64| {
+                        raw_alpha(
+                            image,
+                            x.rem_euclid(image.width as i64) as u32,
+                            y.rem_euclid(image.height as i64) as u32,
+                        )
+                    };
+                    let corners = [
+                        texel(x0, y0),
+                        texel(x0 + 1, y0),
+                        texel(x0, y0 + 1),
+                        texel(x0 + 1, y0 + 1),
+                    ];
+                    let expected = match cutoff {
+                        None => true,
+                        Some(c) if corners.iter().all(|&a| a >= c + 0.01) => true,
+                        Some(c) if corners.iter().all(|&a| a < c - 0.01) => false,
+                        _ => continue,
+                    };
+                    let origin = Vec3A::from(world + normal * 1e-3);
+                    let ray = Ray::segment(origin, -Vec3A::from(normal), 2e-3);
+                    let hit = kernel.closest(&ray, &mut TraversalStats::default());
+                    let hit_this = hit.is_some_and(|h| h.instance as usize == i);
+                    assert_eq!(hit_this, expected, "{name}: uv {uv}, alpha {corners:?}");
+                    checked[usize::from(expected)] += 1;
+                }
+            }
+        }
+    }
+    assert!(
+        checked[0] > 50 && checked[1] > 200,
+        "holes/solid checked: {checked:?}"
+    );
+}
+
+/// The principal axis of a point cloud (power iteration on its covariance).
+fn principal_axis(points: &[Vec3]) -> Vec3 {
+    let mean = points.iter().copied().sum::<Vec3>() / points.len() as f32;
+    let mut cov = glam::Mat3::ZERO;
+    for p in points {
+        let d = *p - mean;
+        cov += glam::Mat3::from_cols(d * d.x, d * d.y, d * d.z);
+    }
+    let mut axis = Vec3::new(0.3, 0.5, 0.8);
+    for _ in 0..100 {
+        axis = (cov * axis).normalize();
+    }
+    axis
+}
+
+#[test]
+fn orientation_test_arrows_point_at_their_targets() {
+    let scene = import(&model("OrientationTest")).unwrap();
+    let world_points = |node: &str| -> Vec<Vec3> {
+        let instance = scene.instances.iter().find(|i| i.node == node).unwrap();
+        scene.meshes[instance.mesh]
+            .mesh
+            .positions
+            .iter()
+            .map(|&p| instance.transform.transform_point3(p))
+            .collect()
+    };
+    for arrow in ["X1", "X2", "Y1", "Y2", "Z1", "Z2"] {
+        let shaft = world_points(&format!("Arrow{arrow}"));
+        let target = world_points(&format!("Target{arrow}"));
+        let centre = shaft.iter().copied().sum::<Vec3>() / shaft.len() as f32;
+        let aim = (target.iter().copied().sum::<Vec3>() / target.len() as f32 - centre).normalize();
+        let axis = principal_axis(&shaft);
+        assert!(
+            axis.dot(aim).abs() > 0.97,
+            "Arrow{arrow} runs along {axis}, its target lies along {aim}"
+        );
+    }
+}
+
+/// Counts camera-ray hits by the hue of their albedo: (green ticks, red crosses).
+fn ticks_and_crosses(q: &Queryable, width: u32, height: u32) -> (usize, usize) {
+    let mut camera = q.scene.camera;
+    camera.width = width;
+    camera.height = height;
+    let view = CameraView::new(&camera, &q.scene.camera_transform.to_affine());
+    let kernel = q.kernel();
+    let (mut green, mut red) = (0, 0);
+    for y in 0..height {
+        for x in 0..width {
+            let ray = view.ray(Vec2::new(x as f32 + 0.5, y as f32 + 0.5), Vec2::ZERO);
+            let Some(hit) = kernel.closest(&ray, &mut TraversalStats::default()) else {
+                continue;
+            };
+            let surface = kernel.surface(&hit, ray.direction);
+            let c = q.shaders.get(surface.shader).albedo(surface.uv);
+            if c.y > 0.25 && c.x < 0.5 * c.y && c.z < 0.5 * c.y {
+                green += 1;
+            }
+            if c.x > 0.25 && c.y < 0.5 * c.x && c.z < 0.5 * c.x {
+                red += 1;
+            }
+        }
+    }
+    (green, red)
+}
+
+#[test]
+fn negative_scale_test_shows_ticks_and_no_crosses() {
+    // The model draws green ticks on the faces that must be seen and red crosses on the
+    // faces that must be culled; a renderer that ignores the determinant's winding flip
+    // shows crosses in the mirrored row.
+    let q = Queryable::new(import(&model("NegativeScaleTest")).unwrap());
+    let (green, red) = ticks_and_crosses(&q, 400, 300);
+    assert!(green > 200, "{green} tick pixels");
+    assert!(
+        red * 50 < green,
+        "{red} cross pixels against {green} tick pixels"
+    );
+}
+
+#[test]
+fn two_sided_plane_is_seen_from_both_sides() {
+    let path = asset("gltf/TwoSidedPlane/glTF/TwoSidedPlane.gltf");
+    let q = Queryable::new(import(&path).unwrap());
+    assert!(
+        q.scene
+            .shaders
+            .iter()
+            .take(q.scene.shaders.len() - 1)
+            .all(|s| s.double_sided)
+    );
+    let kernel = q.kernel();
+    let bounds = q.top_level.bvh.nodes[0].bounds();
+    let centre = bounds.center();
+    let mut seen = 0;
+    for axis in [Vec3A::X, Vec3A::Y, Vec3A::Z] {
+        for sign in [1.0, -1.0] {
+            let dir = axis * sign;
+            let ray = Ray::new(centre - dir * 10.0, dir);
+            seen += usize::from(
+                kernel
+                    .closest(&ray, &mut TraversalStats::default())
+                    .is_some(),
+            );
+        }
+    }
+    assert_eq!(
+        seen, 2,
+        "the plane is hit from its front and its back, and edge-on never"
+    );
+}
+
+#[test]
+fn texture_coordinate_origin_is_the_top_left_of_the_image() {
+    // BoxTextured and TextureCoordinateTest load with their textures; sampling UV
+    // (0.01, 0.01) reads the image's first row, as the gltf crate decodes it.
+    for name in ["TextureCoordinateTest", "BoxTextured"] {
+        let path = model(name);
+        let scene = import(&path).unwrap();
+        let (_, _, images) = gltf::import(&path).unwrap();
+        let textured: Vec<_> = scene
+            .shaders
+            .iter()
+            .filter_map(|s| s.texture.clone())
+            .collect();
+        assert!(!textured.is_empty(), "{name} has a texture");
+        let texture = &textured[0];
+        let image = images
+            .iter()
+            .find(|i| i.width == texture.width() && i.height == texture.height())
+            .unwrap();
+        let channels = image.pixels.len() / (image.width * image.height) as usize;
+        let first = &image.pixels[..3.min(channels)];
+        let sampled = texture.sample(
+            Vec2::new(0.5, 0.5) / Vec2::new(texture.width() as f32, texture.height() as f32),
+        );
+        let expected = sylva_engine::shading::srgb_to_linear(first[0] as f32 / 255.0);
+        assert!(
+            (sampled.x - expected).abs() < 1e-3,
+            "{name}: {sampled} vs {first:?}"
+        );
+    }
+}
+
+#[test]
+fn plant_models_from_the_asset_packs_load_and_stand_upright() {
+    let mut loaded = 0;
+    for pack in [
+        "plants/quaternius_ultimate_nature",
+        "plants/kenney_platformer_kit",
+    ] {
+        for entry in std::fs::read_dir(asset(pack)).unwrap() {
+            let path = entry.unwrap().path();
+            if path.extension().is_none_or(|e| e != "glb") {
+                continue;
+            }
+            let scene = import(&path).unwrap();
+            let model = scene.bake();
+            model.mesh.check().unwrap();
+            assert!(model.mesh.triangle_count() > 0, "{}", path.display());
+            let b = model.mesh.bounds();
+            // Z-up centimetres converted by the node transforms: taller than wide-ish
+            // and about metre-sized, not 100× off.
+            let size = b.extent();
+            assert!(
+                size.max_element() < 50.0 && size.max_element() > 0.05,
+                "{}: {b:?}",
+                path.display()
+            );
+            loaded += 1;
+        }
+    }
+    assert!(loaded >= 3, "{loaded} plant models");
+}
+
+/// Writes `files` into a fresh temporary folder and returns it.
+fn scratch(name: &str, files: &[(&str, &[u8])]) -> PathBuf {
+    let dir = std::env::temp_dir().join(format!("sylva-gltf-{name}-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).unwrap();
+    for (file, bytes) in files {
+        std::fs::write(dir.join(file), bytes).unwrap();
+    }
+    dir
+}
+
+/// A one-triangle glTF with its buffer inline as base64; `positions` are 9 floats.
+fn triangle_gltf(positions: [f32; 9], indices: Option<[u16; 3]>, extra: &str) -> String {
+    let mut bytes: Vec<u8> = positions.iter().flat_map(|f| f.to_le_bytes()).collect();
+    let index_part = indices.map(|i| {
+        let start = bytes.len();
+        bytes.extend(i.iter().flat_map(|v| v.to_le_bytes()));
+        bytes.extend([0, 0]);
+        start
+    });
+    let b64 = base64(&bytes);
+    let (index_view, index_accessor, index_ref) = match index_part {
+        Some(offset) => (
+            format!(r#",{{"buffer":0,"byteOffset":{offset},"byteLength":6}}"#),
+            r#",{"bufferView":1,"componentType":5123,"count":3,"type":"SCALAR"}"#.to_string(),
+            r#","indices":1"#.to_string(),
+        ),
+        None => (String::new(), String::new(), String::new()),
+    };
+    format!(
+        r#"{{"asset":{{"version":"2.0"}},"scene":0,"scenes":[{{"nodes":[0]}}],"nodes":[{{"mesh":0}}],
+"meshes":[{{"primitives":[{{"attributes":{{"POSITION":0}}{index_ref}}}]}}],
+"buffers":[{{"byteLength":{},"uri":"data:application/octet-stream;base64,{b64}"}}],
+"bufferViews":[{{"buffer":0,"byteOffset":0,"byteLength":36}}{index_view}],
+"accessors":[{{"bufferView":0,"componentType":5126,"count":3,"type":"VEC3","min":[0,0,0],"max":[1,1,0]}}{index_accessor}]{extra}}}"#,
+        bytes.len()
+    )
+}
+
+fn base64(bytes: &[u8]) -> String {
+    const ALPHABET: &[u8] = b"ABCDEFGHIJKLMNOPQRSTUVWXYZabcdefghijklmnopqrstuvwxyz0123456789+/";
+    let mut out = String::new();
+    for chunk in bytes.chunks(3) {
+        let n = chunk
+            .iter()
+            .enumerate()
+            .fold(0u32, |n, (i, &b)| n | (b as u32) << (16 - 8 * i));
+        for k in 0..4 {
+            if k <= chunk.len() {
+                out.push(ALPHABET[(n >> (18 - 6 * k) & 63) as usize] as char);
+            } else {
+                out.push('=');
+            }
+        }
+    }
+    out
+}
+
+#[test]
+fn a_valid_inline_triangle_imports_with_flat_normals() {
+    let text = triangle_gltf(
+        [0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0, 0.0],
+        Some([0, 1, 2]),
+        "",
+    );
+    let dir = scratch("ok", &[("t.gltf", text.as_bytes())]);
+    let scene = import(&dir.join("t.gltf")).unwrap();
+    let mesh = &scene.meshes[0].mesh;
+    assert_eq!(mesh.triangle_count(), 1);
+    assert!(
+        mesh.normals.iter().all(|n| *n == Vec3::Z),
+        "{:?}",
+        mesh.normals
+    );
+}
+
+#[test]
+fn bad_files_are_errors_naming_the_file_and_the_gltf_path() {
+    let glb = std::fs::read(model("BoxTextured")).unwrap();
+    let two_sided = std::fs::read(asset("gltf/TwoSidedPlane/glTF/TwoSidedPlane.gltf")).unwrap();
+    let out_of_range = triangle_gltf(
+        [0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0, 0.0],
+        Some([0, 1, 7]),
+        "",
+    );
+    let bad_image = triangle_gltf(
+        [0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0, 0.0],
+        None,
+        r#","images":[{"uri":"leaf.png"}],"textures":[{"source":0}],"materials":[{"name":"leaf","pbrMetallicRoughness":{"baseColorTexture":{"index":0}}}]"#,
+    )
+    .replace(r#""attributes":{"POSITION":0}"#, r#""attributes":{"POSITION":0},"material":0"#);
+    let dir = scratch(
+        "bad",
+        &[
+            ("truncated.glb", &glb[..glb.len() / 2]),
+            ("missing_buffer.gltf", &two_sided),
+            ("out_of_range.gltf", out_of_range.as_bytes()),
+            ("bad_image.gltf", bad_image.as_bytes()),
+            ("leaf.png", b"\x89PNG\r\n\x1a\nnot really a png"),
+            ("garbage.glb", b"glTF\x02\x00\x00\x00garbage"),
+        ],
+    );
+    let cases = [
+        ("truncated.glb", ""),
+        ("missing_buffer.gltf", "buffers[0].uri"),
+        ("out_of_range.gltf", "meshes[0].primitives[0].indices"),
+        ("bad_image.gltf", "baseColorTexture of material 'leaf'"),
+        ("garbage.glb", ""),
+        ("does_not_exist.glb", "cannot read"),
+    ];
+    for (file, place) in cases {
+        let e = import(&dir.join(file)).unwrap_err().to_string();
+        assert!(e.contains(file) && e.contains(place), "{file}: {e}");
+    }
+}
+
+#[test]
+fn nan_vertices_are_dropped_and_counted() {
+    let text = triangle_gltf(
+        [0.0, 0.0, 0.0, f32::NAN, 0.0, 0.0, 0.0, 1.0, 0.0],
+        Some([0, 1, 2]),
+        "",
+    );
+    let dir = scratch("nan", &[("nan.gltf", text.as_bytes())]);
+    let scene = import(&dir.join("nan.gltf")).unwrap();
+    assert_eq!(scene.report.non_finite_vertices, 1);
+    assert_eq!(scene.report.dropped_triangles, 1);
+    assert_eq!(scene.meshes[0].mesh.triangle_count(), 0);
+}
+
+#[test]
+fn cameras_are_chosen_by_name_or_index_and_missing_ones_are_errors() {
+    let path = model("BoxTextured");
+    let scene = import(&path).unwrap();
+    // BoxTextured has no camera: the first choice frames the model, others are errors.
+    assert!(scene.camera(&CameraChoice::First).unwrap().is_none());
+    let e = scene
+        .camera(&CameraChoice::parse("3"))
+        .unwrap_err()
+        .to_string();
+    assert!(
+        e.contains("BoxTextured.glb") && e.contains("index 3"),
+        "{e}"
+    );
+    let e = scene
+        .camera(&CameraChoice::parse("main"))
+        .unwrap_err()
+        .to_string();
+    assert!(e.contains("named 'main'"), "{e}");
+    let built = scene.into_scene(&CameraChoice::First).unwrap();
+    let view = CameraView::new(&built.camera, &built.camera_transform.to_affine());
+    let centre = view.ray(Vec2::new(320.0, 240.0), Vec2::ZERO);
+    assert!(
+        centre.direction.z < -0.5,
+        "the framing view looks at the model from +Z"
+    );
+}
