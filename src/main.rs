@@ -17,7 +17,10 @@ use tracing_subscriber::prelude::*;
 /// Examples:
 ///   sylva render --out meadow.png
 ///   sylva render --width 1280 --height 720 --spp 16 --out meadow.exr
-///   sylva info --scene meadow
+///   sylva render --scene forest --out forest.png
+///   sylva render --scene my_ecosystem.toml --out mine.png
+///   sylva render --gltf model.glb --camera 0 --out model.png
+///   sylva info --scene paper
 #[derive(Parser, Debug)]
 #[command(name = "sylva", version, verbatim_doc_comment)]
 struct Cli {
@@ -35,9 +38,16 @@ enum Command {
 
 #[derive(Args, Debug)]
 struct SceneArgs {
-    /// Built-in scene to use (available: meadow).
+    /// Built-in scene (meadow, forest, paper) or a TOML scene file (*.toml).
     #[arg(long, default_value = "meadow")]
     scene: String,
+    /// Render or describe a glTF/GLB file instead of a scene.
+    #[arg(long, conflicts_with = "scene", value_name = "FILE")]
+    gltf: Option<PathBuf>,
+    /// With --gltf: the camera to look through, by name or index (default: the file's
+    /// first perspective camera, or a view framing the model).
+    #[arg(long, requires = "gltf", value_name = "NAME|INDEX")]
+    camera: Option<String>,
     /// Seed of the scene's generation and of the sampler: same seed, same image.
     #[arg(long, default_value_t = 0)]
     seed: u64,
@@ -51,9 +61,10 @@ struct SceneArgs {
 struct RenderArgs {
     #[command(flatten)]
     scene: SceneArgs,
-    /// Image width in pixels.
-    #[arg(long, default_value_t = 640, value_parser = clap::value_parser!(u32).range(1..=16384))]
-    width: u32,
+    /// Image width in pixels [default: height × 4/3 (640 at the default height), or × the
+    /// glTF camera's aspect ratio].
+    #[arg(long, value_parser = clap::value_parser!(u32).range(1..=16384))]
+    width: Option<u32>,
     /// Image height in pixels.
     #[arg(long, default_value_t = 480, value_parser = clap::value_parser!(u32).range(1..=16384))]
     height: u32,
@@ -128,12 +139,58 @@ fn check_output_path(path: &Path) -> Result<()> {
     Ok(())
 }
 
-fn build(world: &mut World, args: &SceneArgs) -> Result<SceneBuild> {
+/// A built scene and, for glTF files, the chosen camera's aspect ratio.
+fn build(world: &mut World, args: &SceneArgs) -> Result<(SceneBuild, Option<f32>)> {
     init_render_world(world, args.threads as usize)
         .map_err(|e| anyhow::anyhow!("could not start the worker threads: {e}"))?;
     world.insert_resource(RenderSeed(args.seed));
     let pool = world.resource::<RenderPool>().clone();
-    Ok(pool.install(|| build_scene(&args.scene, args.seed))?)
+    match &args.gltf {
+        Some(path) => import_gltf(&pool, path, args.camera.as_deref()),
+        None => Ok((pool.install(|| build_scene(&args.scene, args.seed))?, None)),
+    }
+}
+
+#[cfg(feature = "gltf")]
+fn import_gltf(
+    pool: &RenderPool,
+    path: &Path,
+    camera: Option<&str>,
+) -> Result<(SceneBuild, Option<f32>)> {
+    use sylva::scenes::gltf::{CameraChoice, import};
+    let imported = import(path)?;
+    let choice = camera.map_or(CameraChoice::First, CameraChoice::parse);
+    let aspect = imported.camera(&choice)?.and_then(|c| c.aspect_ratio);
+    let scene = pool.install(|| imported.into_scene(&choice))?;
+    Ok((scene, aspect))
+}
+
+#[cfg(not(feature = "gltf"))]
+fn import_gltf(
+    _pool: &RenderPool,
+    path: &Path,
+    _camera: Option<&str>,
+) -> Result<(SceneBuild, Option<f32>)> {
+    bail!(
+        "{}: reading glTF needs the 'gltf' cargo feature, which this build left out",
+        path.display()
+    )
+}
+
+/// Name of what is being rendered, for messages.
+fn scene_label(args: &SceneArgs) -> String {
+    match &args.gltf {
+        Some(path) => path.display().to_string(),
+        None => args.scene.clone(),
+    }
+}
+
+/// Peak resident memory of this process (Linux `VmHWM`), when known.
+fn peak_memory_bytes() -> Option<u64> {
+    let status = std::fs::read_to_string("/proc/self/status").ok()?;
+    let line = status.lines().find(|l| l.starts_with("VmHWM:"))?;
+    let kb: u64 = line.split_whitespace().nth(1)?.parse().ok()?;
+    Some(kb * 1024)
 }
 
 fn render(args: RenderArgs) -> Result<()> {
@@ -146,8 +203,14 @@ fn render(args: RenderArgs) -> Result<()> {
     }
     let _trace_guard = init_tracing(args.trace.as_deref());
     let mut world = World::new();
-    let mut scene = build(&mut world, &args.scene)?;
-    scene.camera.width = args.width;
+    let (mut scene, aspect) = build(&mut world, &args.scene)?;
+    let aspect = aspect
+        .filter(|a| a.is_finite() && *a > 0.0)
+        .unwrap_or(4.0 / 3.0);
+    let width = args
+        .width
+        .unwrap_or_else(|| ((args.height as f32 * aspect).round() as u32).clamp(1, 16384));
+    scene.camera.width = width;
     scene.camera.height = args.height;
     scene.camera.samples_per_pixel = args.spp;
     scene.camera.sky_samples = args.sky_samples;
@@ -161,7 +224,7 @@ fn render(args: RenderArgs) -> Result<()> {
     });
 
     let tiles = Tile::grid(
-        args.width,
+        width,
         args.height,
         sylva::engine::RenderParams::default().tile_size,
     )
@@ -206,9 +269,9 @@ fn render(args: RenderArgs) -> Result<()> {
     }
     if !args.quiet {
         println!(
-            "{}: {}x{} at {} spp -> {}\n  {} instances, {} instanced triangles ({} unique), BLAS build {:.2} s, TLAS build {:.1} ms, scene generation {:.2} s\n  render {:.2} s, {:.2} M rays/s ({} camera + {} shadow rays), total {:.2} s",
-            args.scene.scene,
-            args.width,
+            "{}: {}x{} at {} spp -> {}\n  {} instances, {} instanced triangles ({} unique), BLAS build {:.2} s, TLAS build {:.1} ms, scene generation {:.2} s\n  render {:.2} s, {:.2} M rays/s ({} camera + {} shadow rays), {:.2} transparency segments per camera ray, total {:.2} s",
+            scene_label(&args.scene),
+            width,
             args.height,
             args.spp,
             args.out.display(),
@@ -222,6 +285,7 @@ fn render(args: RenderArgs) -> Result<()> {
             rays as f64 / render_s.max(1e-9) / 1e6,
             group(render_stats.last_frame.closest_rays),
             group(render_stats.last_frame.any_rays),
+            render_stats.last_frame.segments_per_closest_ray(),
             wall.as_secs_f64(),
         );
     }
@@ -230,28 +294,30 @@ fn render(args: RenderArgs) -> Result<()> {
 
 fn info(args: SceneArgs) -> Result<()> {
     let _guard = init_tracing(None);
+    let command_start = Instant::now();
     let mut world = World::new();
-    let scene = build(&mut world, &args)?;
+    let (scene, _) = build(&mut world, &args)?;
     let stats = scene.stats();
     let pool = world.resource::<RenderPool>().clone();
     let descs = scene.instance_descs();
     let start = Instant::now();
     let tlas = pool.install(|| TopLevel::build(&scene.library, &descs, Default::default()));
     let tlas_time = start.elapsed();
+    let total_time = command_start.elapsed();
     println!("scene            {} (seed {})", scene.name, args.seed);
     println!("species          {}", stats.species);
     for s in &scene.species {
         let count = scene
             .plants
             .iter()
-            .filter(|(g, _)| *g == s.geometry)
+            .filter(|p| p.geometry == s.geometry)
             .count();
         let tris = scene
             .library
             .get(s.geometry)
             .map_or(0, |g| g.mesh.triangle_count());
         println!(
-            "  {:<14} {:>9} triangles  {:>9} instances",
+            "  {:<22} {:>9} triangles  {:>9} instances",
             s.name,
             group(tris as u64),
             group(count as u64)
@@ -263,8 +329,22 @@ fn info(args: SceneArgs) -> Result<()> {
             group(t.mesh.triangle_count() as u64)
         );
     }
+    println!("layers           {}", scene.layers.len());
+    for (i, name) in scene.layers.iter().enumerate() {
+        let count = scene.plants.iter().filter(|p| p.layer == i as u32).count();
+        println!("  {name:<22} {:>9} plants", group(count as u64));
+    }
+    println!("plants           {}", group(scene.plants.len() as u64));
     println!("unique triangles {}", group(stats.unique_triangles as u64));
-    println!("instances        {}", group(stats.instances as u64));
+    println!(
+        "instances        {} (plants{})",
+        group(stats.instances as u64),
+        if scene.terrain.is_some() {
+            " + terrain"
+        } else {
+            ""
+        }
+    );
     println!("instanced tris   {}", group(stats.instanced_triangles));
     println!(
         "memory           {:.1} MB (geometry + BLAS {:.1} MB, TLAS {:.1} MB)",
@@ -278,6 +358,11 @@ fn info(args: SceneArgs) -> Result<()> {
         scene.blas_time.as_secs_f64(),
         tlas_time.as_secs_f64() * 1e3,
         pool.threads()
+    );
+    println!(
+        "total            {:.2} s to generate and build everything, peak memory {}",
+        total_time.as_secs_f64(),
+        peak_memory_bytes().map_or("unknown".into(), |b| format!("{:.0} MB", b as f64 / 1e6))
     );
     Ok(())
 }

@@ -174,7 +174,7 @@ fn info_prints_the_scene_statistics() {
     assert!(run.status.success());
     let stdout = String::from_utf8_lossy(&run.stdout);
     for key in [
-        "species          3",
+        "species          5",
         "unique triangles",
         "instances",
         "instanced tris",
@@ -200,4 +200,113 @@ fn help_explains_the_commands() {
     ] {
         assert!(stdout.contains(flag), "--help lacks {flag}");
     }
+}
+
+fn asset(relative: &str) -> PathBuf {
+    Path::new(env!("CARGO_MANIFEST_DIR"))
+        .join("../shared/assets")
+        .join(relative)
+}
+
+#[test]
+fn renders_a_gltf_file_through_its_camera_choice() {
+    let dir = temp_dir("gltf");
+    let out = dir.join("box.png");
+    let model = asset("gltf/BoxTextured/glTF-Binary/BoxTextured.glb");
+    let run = sylva(&[
+        "render",
+        "--gltf",
+        model.to_str().unwrap(),
+        "--height",
+        "30",
+        "--spp",
+        "1",
+        "--out",
+        out.to_str().unwrap(),
+    ]);
+    assert!(
+        run.status.success(),
+        "{}",
+        String::from_utf8_lossy(&run.stderr)
+    );
+    let png = image::open(&out).unwrap().to_rgb8();
+    assert_eq!(
+        png.dimensions(),
+        (40, 30),
+        "no camera: the default 4:3 frame"
+    );
+    let centre = png.get_pixel(20, 15);
+    let corner = png.get_pixel(0, 0);
+    assert_ne!(centre, corner, "the box is in the middle of the frame");
+
+    let info = sylva(&["info", "--gltf", model.to_str().unwrap()]);
+    let text = String::from_utf8_lossy(&info.stdout);
+    assert!(
+        info.status.success() && text.contains("instances        1"),
+        "{text}"
+    );
+
+    let missing_camera = sylva(&[
+        "render",
+        "--gltf",
+        model.to_str().unwrap(),
+        "--camera",
+        "2",
+        "--out",
+        out.to_str().unwrap(),
+    ]);
+    let stderr = String::from_utf8_lossy(&missing_camera.stderr);
+    assert_eq!(missing_camera.status.code(), Some(1), "{stderr}");
+    assert!(stderr.contains("no camera with index 2"), "{stderr}");
+
+    let bad = dir.join("broken.glb");
+    std::fs::write(&bad, b"glTF\x02\x00\x00\x00\x10\x00").unwrap();
+    let run = sylva(&["info", "--gltf", bad.to_str().unwrap()]);
+    let stderr = String::from_utf8_lossy(&run.stderr);
+    assert_eq!(run.status.code(), Some(1), "{stderr}");
+    assert!(stderr.contains("broken.glb"), "{stderr}");
+
+    let usage = sylva(&["render", "--camera", "0"]);
+    assert_eq!(usage.status.code(), Some(2), "--camera needs --gltf");
+}
+
+#[test]
+fn scene_files_render_and_their_errors_name_file_line_and_key() {
+    let dir = temp_dir("toml");
+    let good = dir.join("tiny.toml");
+    std::fs::write(
+        &good,
+        "[terrain]\nsize = 20.0\ncells = 10\n[[layer]]\nname = \"g\"\ncount = 50\n[[layer.species]]\nname = \"grass\"\nkind = \"grass\"\ntriangles = 60\n[camera]\neye = [0, 8]\ntarget = [0, 0]\n",
+    )
+    .unwrap();
+    let out = dir.join("tiny.png");
+    let run = sylva(&[
+        "render",
+        "--scene",
+        good.to_str().unwrap(),
+        "--width",
+        "32",
+        "--height",
+        "24",
+        "--spp",
+        "1",
+        "--out",
+        out.to_str().unwrap(),
+    ]);
+    assert!(
+        run.status.success(),
+        "{}",
+        String::from_utf8_lossy(&run.stderr)
+    );
+    assert!(out.is_file());
+
+    let bad = dir.join("bad.toml");
+    std::fs::write(&bad, "[terrain]\nsize = 20.0\ncels = 10\n").unwrap();
+    let run = sylva(&["info", "--scene", bad.to_str().unwrap()]);
+    let stderr = String::from_utf8_lossy(&run.stderr);
+    assert_eq!(run.status.code(), Some(1), "{stderr}");
+    assert!(
+        stderr.contains("bad.toml:3:1") && stderr.contains("cels"),
+        "{stderr}"
+    );
 }
