@@ -463,12 +463,13 @@ impl EcosystemSpec {
             clear_radius: 2.0,
             sun: Some(default_sun()),
             sky: Some(default_sky()),
+            // Above the canopy at the terrain's edge, looking across the landscape.
             camera: CameraSpec {
-                eye: Vec2::new(0.0, 60.0),
-                eye_height: 1.8,
-                target: Vec2::new(0.0, 0.0),
-                target_height: 3.0,
-                fov: 60.0,
+                eye: Vec2::new(-20.0, 148.0),
+                eye_height: 32.0,
+                target: Vec2::new(-5.0, 90.0),
+                target_height: 0.0,
+                fov: 50.0,
             },
         }
     }

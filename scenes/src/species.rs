@@ -523,6 +523,9 @@ impl MeshBuilder {
     }
 }
 
+/// Leaf quad area per square metre of plant height squared that a budget must afford.
+const LEAF_COVERAGE: f32 = 3.0;
+
 /// Rows of a grass card.
 const CARD_SEGMENTS: u32 = 3;
 
@@ -580,7 +583,13 @@ pub fn generate(params: &PlantParams, seed: u64) -> PlantModel {
         }
         let twigs = levels.last().expect("a plant has levels");
         leaves = (budget.saturating_sub(structure) / 2).max(twigs.len() as u32);
-        let width = params.leaf_size / params.leaf_shape.aspect();
+        // A small budget cannot afford many small leaves: grow them (towards leaf
+        // clusters) so the crown keeps about LEAF_COVERAGE × height² of leaf quads.
+        let aspect = params.leaf_shape.aspect();
+        let needed =
+            (LEAF_COVERAGE * params.height * params.height * aspect / leaves as f32).sqrt();
+        let leaf_size = params.leaf_size.max(needed.min(params.height * 0.15));
+        let width = leaf_size / aspect;
         for k in 0..leaves {
             let twig = &twigs[k as usize % twigs.len()];
             let (p, d, r) = twig.at(rng.range(0.15, 1.0));
@@ -588,14 +597,8 @@ pub fn generate(params: &PlantParams, seed: u64) -> PlantModel {
                 * d.any_orthonormal_vector();
             let dir = (d * 0.6 + around + Vec3::Y * 0.2).normalize_or(d);
             let facing = (Vec3::Y + rng.unit() * 0.5).normalize_or(Vec3::Y);
-            let size = params.leaf_size * rng.range(0.8, 1.2);
-            b.leaf(
-                p + around * r,
-                dir,
-                facing,
-                size,
-                size / params.leaf_size * width,
-            );
+            let size = leaf_size * rng.range(0.8, 1.2);
+            b.leaf(p + around * r, dir, facing, size, size / leaf_size * width);
         }
     }
     PlantModel {

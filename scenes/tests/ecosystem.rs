@@ -184,3 +184,13 @@ fn plants_are_spawned_moved_and_despawned_one_by_one() {
     );
     assert!(world.get::<Instance>(camera).is_none());
 }
+
+#[test]
+fn the_shipped_example_scene_file_builds() {
+    let path = Path::new(env!("CARGO_MANIFEST_DIR")).join("files/hillside.toml");
+    let scene = build_scene(path.to_str().unwrap(), 0).unwrap();
+    assert_eq!(scene.name, "hillside");
+    assert_eq!(scene.layers, ["grass", "shrub belt", "trees"]);
+    assert_eq!(scene.plants.len(), 4000 + 250 + 25);
+    assert_eq!(scene.species.len(), 5);
+}
