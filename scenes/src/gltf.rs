@@ -365,10 +365,20 @@ fn read_accessor<T: gltf::accessor::Item + Copy>(
     if accessor.count() == 0 {
         return Ok(Vec::new());
     }
-    let dimensions_ok = std::mem::size_of::<T>() == accessor.size()
-        || accessor.data_type() != gltf::accessor::DataType::F32;
-    if !dimensions_ok {
-        return Err(importer.error(location.to_string(), "accessor has the wrong type"));
+    // Items here are f32 vectors; integer (quantized) data would be misread.
+    if accessor.data_type() != gltf::accessor::DataType::F32
+        || std::mem::size_of::<T>() != accessor.size()
+    {
+        return Err(importer.error(
+            location.to_string(),
+            format!(
+                "expected a float accessor of {} bytes per item, found {:?} × {} bytes \
+                 (KHR_mesh_quantization is not supported)",
+                std::mem::size_of::<T>(),
+                accessor.data_type(),
+                accessor.size()
+            ),
+        ));
     }
     gltf::accessor::Iter::<T>::new(accessor, importer.buffer_data())
         .map(|it| it.collect())
@@ -841,11 +851,26 @@ impl GltfScene {
                 geometry: id,
             });
         }
+        let mut sheared = 0usize;
         let plants = self
             .instances
             .iter()
             .map(|i| {
                 let (scale, rotation, translation) = i.transform.to_scale_rotation_translation();
+                // Plants carry translation-rotation-scale; a sheared node matrix cannot
+                // be represented and is approximated (and counted).
+                let rebuilt =
+                    Affine3A::from_scale_rotation_translation(scale, rotation, translation);
+                let size = i
+                    .transform
+                    .matrix3
+                    .abs()
+                    .to_cols_array()
+                    .into_iter()
+                    .fold(1.0f32, f32::max);
+                if !rebuilt.abs_diff_eq(i.transform, 1e-4 * size) {
+                    sheared += 1;
+                }
                 Plant {
                     geometry: species[i.mesh].geometry,
                     transform: Transform::from_translation(translation)
@@ -855,6 +880,12 @@ impl GltfScene {
                 }
             })
             .collect();
+        if sheared > 0 {
+            tracing::warn!(
+                "{}: {sheared} instances have sheared transforms, approximated by scale, rotation and translation",
+                self.path.display()
+            );
+        }
         Ok(SceneBuild {
             name,
             library,
