@@ -583,49 +583,16 @@ fn gpu_instances(
             }
         }
     };
-    let float = |a: &gltf::Accessor, name: &str| {
-        if a.data_type() == gltf::accessor::DataType::F32 {
-            Ok(())
-        } else {
-            Err(importer.error(
-                format!("{at}.attributes.{name}"),
-                "only float accessors are supported",
-            ))
-        }
-    };
-    let translations: Option<Vec<[f32; 3]>> = match accessor("TRANSLATION")? {
-        Some(a) => {
-            float(&a, "TRANSLATION")?;
-            Some(read_accessor(
-                importer,
-                a,
-                &format!("{at}.attributes.TRANSLATION"),
-            )?)
-        }
-        None => None,
-    };
-    let rotations: Option<Vec<[f32; 4]>> = match accessor("ROTATION")? {
-        Some(a) => {
-            float(&a, "ROTATION")?;
-            Some(read_accessor(
-                importer,
-                a,
-                &format!("{at}.attributes.ROTATION"),
-            )?)
-        }
-        None => None,
-    };
-    let scales: Option<Vec<[f32; 3]>> = match accessor("SCALE")? {
-        Some(a) => {
-            float(&a, "SCALE")?;
-            Some(read_accessor(
-                importer,
-                a,
-                &format!("{at}.attributes.SCALE"),
-            )?)
-        }
-        None => None,
-    };
+    // read_accessor refuses non-float data, which the extension allows only quantized.
+    let translations: Option<Vec<[f32; 3]>> = accessor("TRANSLATION")?
+        .map(|a| read_accessor(importer, a, &format!("{at}.attributes.TRANSLATION")))
+        .transpose()?;
+    let rotations: Option<Vec<[f32; 4]>> = accessor("ROTATION")?
+        .map(|a| read_accessor(importer, a, &format!("{at}.attributes.ROTATION")))
+        .transpose()?;
+    let scales: Option<Vec<[f32; 3]>> = accessor("SCALE")?
+        .map(|a| read_accessor(importer, a, &format!("{at}.attributes.SCALE")))
+        .transpose()?;
     let counts: Vec<usize> = [
         translations.as_ref().map(Vec::len),
         rotations.as_ref().map(Vec::len),
