@@ -25,11 +25,13 @@ pub use sylva_systems as systems;
 pub mod prelude {
     pub use bevy_ecs::prelude::*;
     pub use glam::{Quat, Vec3};
+    pub use sylva_engine::components::Layer;
+    pub use sylva_engine::environment::{EnvironmentLight, EnvironmentMap};
     pub use sylva_engine::{
         Camera, DirectionalLight, Film, FrameBuffer, GeometryId, GeometryLibrary, Hidden, Instance,
         Lens, Shader, ShaderId, SkyLight, Transform,
     };
-    pub use sylva_scenes::{SceneBuild, build_scene, spawn};
+    pub use sylva_scenes::{SceneBuild, build_scene, move_plant, plant_at, spawn};
     pub use sylva_systems::{
         Frame, ImageOutput, OutputLog, RenderPool, RenderSeed, RenderStats, RenderSystems,
         TileProgress, TopLevelState, frame_schedule, init_render_world,

@@ -71,9 +71,17 @@ struct RenderArgs {
     /// Camera samples per pixel.
     #[arg(long, default_value_t = 4, value_parser = clap::value_parser!(u32).range(1..=65536))]
     spp: u32,
-    /// Sky shadow rays per camera hit (0 = sun only).
-    #[arg(long, default_value_t = 2, value_parser = clap::value_parser!(u32).range(0..=1024))]
+    /// Sky shadow rays per camera hit, or virtual lights sampled per hit with --env
+    /// (0 = sun only).
+    #[arg(long, visible_alias = "light-samples", default_value_t = 2, value_parser = clap::value_parser!(u32).range(0..=1024))]
     sky_samples: u32,
+    /// Light the scene with a latitude-longitude HDR environment map (.hdr or .exr)
+    /// instead of the scene's sun and sky.
+    #[arg(long, value_name = "FILE")]
+    env: Option<PathBuf>,
+    /// Virtual directional lights the environment map is discretised into (median cut).
+    #[arg(long, default_value_t = 1024, value_parser = clap::value_parser!(u32).range(1..=65536))]
+    lights: u32,
     /// Exposure in stops, applied before tone mapping (PNG only).
     #[arg(long, default_value_t = 0.0, allow_hyphen_values = true)]
     exposure: f32,
@@ -203,7 +211,26 @@ fn render(args: RenderArgs) -> Result<()> {
     }
     let _trace_guard = init_tracing(args.trace.as_deref());
     let mut world = World::new();
+    let environment = match &args.env {
+        Some(path) => {
+            let loaded = sylva::scenes::environment::load_environment(path)?;
+            if loaded.repaired_texels > 0 {
+                eprintln!(
+                    "warning: {}: {} NaN, infinite or negative texels set to zero",
+                    path.display(),
+                    loaded.repaired_texels
+                );
+            }
+            Some(EnvironmentLight::new(loaded.map, args.lights as usize))
+        }
+        None => None,
+    };
     let (mut scene, aspect) = build(&mut world, &args.scene)?;
+    if environment.is_some() {
+        // The map carries the sun and the sky: keeping the scene's would count them twice.
+        scene.sun = None;
+        scene.sky = None;
+    }
     let aspect = aspect
         .filter(|a| a.is_finite() && *a > 0.0)
         .unwrap_or(4.0 / 3.0);
@@ -218,6 +245,9 @@ fn render(args: RenderArgs) -> Result<()> {
     let stats = scene.stats();
     let (generate_time, blas_time) = (scene.generate_time, scene.blas_time);
     let spawned = spawn(&mut world, scene);
+    if let Some(environment) = environment {
+        world.spawn(environment);
+    }
     world.entity_mut(spawned.camera).insert(ImageOutput {
         path: args.out.clone(),
         after_frames: 1,

@@ -310,3 +310,48 @@ fn scene_files_render_and_their_errors_name_file_line_and_key() {
         "{stderr}"
     );
 }
+
+#[test]
+fn an_hdr_environment_lights_the_scene_and_bad_maps_are_errors() {
+    let dir = temp_dir("env");
+    let out = dir.join("env.png");
+    let map = asset("hdr/kloofendal_overcast_1k.hdr");
+    let run = sylva(&[
+        "render",
+        "--env",
+        map.to_str().unwrap(),
+        "--lights",
+        "256",
+        "--width",
+        "32",
+        "--height",
+        "24",
+        "--spp",
+        "1",
+        "--out",
+        out.to_str().unwrap(),
+    ]);
+    assert!(
+        run.status.success(),
+        "{}",
+        String::from_utf8_lossy(&run.stderr)
+    );
+    let png = image::open(&out).unwrap().to_rgb8();
+    assert!(
+        png.pixels().any(|p| p.0 != [0, 0, 0]),
+        "the map lights the scene"
+    );
+
+    let bad = dir.join("sky.hdr");
+    std::fs::write(&bad, b"#?RADIANCE\nnot a map").unwrap();
+    let run = sylva(&[
+        "render",
+        "--env",
+        bad.to_str().unwrap(),
+        "--out",
+        out.to_str().unwrap(),
+    ]);
+    let stderr = String::from_utf8_lossy(&run.stderr);
+    assert_eq!(run.status.code(), Some(1), "{stderr}");
+    assert!(stderr.contains("sky.hdr"), "{stderr}");
+}

@@ -36,6 +36,7 @@ impl BenchScene {
         let lights = LightSet {
             directional: build.sun.into_iter().collect(),
             sky: build.sky,
+            environment: None,
         };
         let view = CameraView::new(&build.camera, &build.camera_transform.to_affine());
         Self {

@@ -387,8 +387,9 @@ fn region_light(map: &EnvironmentMap, r: &Region) -> VirtualLight {
 }
 
 /// The environment as the kernel uses it: the map for what camera rays see, and its
-/// virtual lights for shading.
-#[derive(Clone, Debug, PartialEq)]
+/// virtual lights for shading. As a component it makes a light entity; it replaces the
+/// gradient sky while present.
+#[derive(bevy_ecs::component::Component, Clone, Debug, PartialEq)]
 pub struct EnvironmentLight {
     /// The radiance map.
     pub map: EnvironmentMap,

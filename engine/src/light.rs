@@ -1,8 +1,10 @@
 //! Lights: a directional sun and a gradient sky. Light entities carry these components;
 //! the kernel reads them through [`LightSet`].
 
+use crate::environment::EnvironmentLight;
 use bevy_ecs::{component::Component, resource::Resource};
 use glam::{Vec3, Vec3A};
+use std::sync::Arc;
 
 /// A distant light such as the sun.
 #[derive(Component, Clone, Copy, Debug, PartialEq)]
@@ -53,14 +55,19 @@ impl SkyLight {
 pub struct LightSet {
     /// Directional lights, normalised directions.
     pub directional: Vec<DirectionalLight>,
-    /// The sky, if any (black otherwise).
+    /// The sky, if any (black otherwise); unused while an environment map is set.
     pub sky: Option<SkyLight>,
+    /// An HDR environment and its virtual lights; replaces the sky.
+    pub environment: Option<Arc<EnvironmentLight>>,
 }
 
 impl LightSet {
     /// Radiance of the environment seen along `d`.
     #[inline]
     pub fn environment(&self, d: Vec3A) -> Vec3A {
-        self.sky.map_or(Vec3A::ZERO, |s| s.radiance(d))
+        match &self.environment {
+            Some(e) => e.map.radiance(d),
+            None => self.sky.map_or(Vec3A::ZERO, |s| s.radiance(d)),
+        }
     }
 }

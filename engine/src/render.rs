@@ -209,7 +209,8 @@ impl<'a> RenderScene<'a> {
         }
     }
 
-    /// Radiance arriving along `ray`: direct sun and sky on Lambertian surfaces.
+    /// Radiance arriving along `ray`: direct sun and sky (or environment: `sky_samples`
+    /// virtual lights picked by luminance) on Lambertian surfaces.
     pub fn radiance(
         &self,
         ray: &Ray,
@@ -236,7 +237,25 @@ impl<'a> RenderScene<'a> {
                     albedo * Vec3A::from(light.irradiance) * (cos * std::f32::consts::FRAC_1_PI);
             }
         }
-        if let Some(sky) = &self.lights.sky {
+        if let Some(environment) = &self.lights.environment {
+            // Unbiased for the discrete set: E[f(L)/p(L)] = Σ_i albedo/π · E_i · cos_i · V_i.
+            for k in 0..sky_samples {
+                let Some(light) = environment.lights.sample(key.get(SKY_DIMENSION + k)) else {
+                    continue;
+                };
+                let l = Vec3A::from(light.direction);
+                let cos = ns.dot(l);
+                if cos <= 0.0 || ng.dot(l) <= 0.0 {
+                    continue;
+                }
+                let shadow = Ray::new(surface.point.offset_origin(ng, l), l);
+                if !self.occluded(&shadow, stats) {
+                    let weight = cos * std::f32::consts::FRAC_1_PI
+                        / (light.probability * sky_samples as f32);
+                    radiance += albedo * Vec3A::from(light.irradiance) * weight;
+                }
+            }
+        } else if let Some(sky) = &self.lights.sky {
             let (t, b) = orthonormal_basis(ns);
             for k in 0..sky_samples {
                 let local = cosine_hemisphere(key.get2(SKY_DIMENSION + 2 * k));

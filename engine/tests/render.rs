@@ -90,6 +90,7 @@ fn fixture() -> Fixture {
             horizon: Vec3::splat(0.8),
             ground: Vec3::splat(0.1),
         }),
+        environment: None,
     };
     Fixture {
         library,
@@ -186,6 +187,7 @@ fn lambertian_plane_under_sun_matches_the_analytic_radiance() {
             irradiance: Vec3::new(2.0, 3.0, 4.0),
         }],
         sky: None,
+        environment: None,
     };
     let scene = RenderScene {
         geometry: &library,

@@ -8,6 +8,7 @@ use bevy_ecs::prelude::*;
 use std::time::Instant;
 use sylva_engine::camera::{Camera, CameraView};
 use sylva_engine::components::{Hidden, Instance, Transform};
+use sylva_engine::environment::EnvironmentLight;
 use sylva_engine::film::{Film, FrameBuffer, Tile};
 use sylva_engine::geometry::GeometryLibrary;
 use sylva_engine::light::{DirectionalLight, LightSet, SkyLight};
@@ -91,11 +92,15 @@ pub fn compile_shaders(shaders: Query<&Shader>, mut table: ResMut<ShaderTable>) 
 pub fn lights_changed(
     suns: Query<(), Changed<DirectionalLight>>,
     skies: Query<(), Changed<SkyLight>>,
+    environments: Query<(), Changed<EnvironmentLight>>,
     mut removed_suns: RemovedComponents<DirectionalLight>,
     mut removed_skies: RemovedComponents<SkyLight>,
+    mut removed_environments: RemovedComponents<EnvironmentLight>,
 ) -> bool {
-    let removed = removed_suns.read().count() + removed_skies.read().count();
-    removed > 0 || !suns.is_empty() || !skies.is_empty()
+    let removed = removed_suns.read().count()
+        + removed_skies.read().count()
+        + removed_environments.read().count();
+    removed > 0 || !suns.is_empty() || !skies.is_empty() || !environments.is_empty()
 }
 
 /// Gathers light entities into the [`LightSet`]; directions are normalised and lights
@@ -103,6 +108,7 @@ pub fn lights_changed(
 pub fn compile_lights(
     suns: Query<&DirectionalLight>,
     skies: Query<&SkyLight>,
+    environments: Query<&EnvironmentLight>,
     mut lights: ResMut<LightSet>,
 ) {
     let _span = tracing::info_span!("compile_lights").entered();
@@ -131,7 +137,18 @@ pub fn compile_lights(
     if skies.iter().count() > 1 {
         tracing::warn!("more than one sky: using the first valid one");
     }
-    *lights = LightSet { directional, sky };
+    if environments.iter().count() > 1 {
+        tracing::warn!("more than one environment light: using the first");
+    }
+    let environment = environments
+        .iter()
+        .next()
+        .map(|e| std::sync::Arc::new(e.clone()));
+    *lights = LightSet {
+        directional,
+        sky,
+        environment,
+    };
 }
 
 /// Renders one frame per camera, tiles in parallel on the render pool. The frame index

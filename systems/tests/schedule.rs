@@ -9,7 +9,7 @@ use sylva_engine::camera::Camera;
 use sylva_engine::components::{Hidden, Instance, Transform};
 use sylva_engine::film::Film;
 use sylva_engine::geometry::{Geometry, GeometryLibrary};
-use sylva_engine::light::{DirectionalLight, SkyLight};
+use sylva_engine::light::{DirectionalLight, LightSet, SkyLight};
 use sylva_engine::mesh::TriangleMesh;
 use sylva_engine::shading::{Shader, ShaderId};
 use sylva_systems::*;
@@ -111,6 +111,26 @@ fn static_frames_rebuild_nothing_and_accumulate() {
         assert_eq!(w.film().frames(), frame, "static frames accumulate");
     }
     assert_eq!(w.world.resource::<RenderStats>().frames, 4);
+}
+
+#[test]
+fn an_environment_light_is_compiled_and_restarts_accumulation() {
+    use sylva_engine::environment::{EnvironmentLight, EnvironmentMap};
+    let mut w = test_world(2);
+    w.run();
+    w.run();
+    assert_eq!(w.film().frames(), 2);
+    assert!(w.world.resource::<LightSet>().environment.is_none());
+    let map = EnvironmentMap::constant(Vec3::splat(0.5));
+    let entity = w.world.spawn(EnvironmentLight::new(map, 4)).id();
+    w.run();
+    let lights = w.world.resource::<LightSet>();
+    assert_eq!(lights.environment.as_ref().map(|e| e.lights.len()), Some(1));
+    assert_eq!(w.film().frames(), 1, "new light, new accumulation");
+    w.world.despawn(entity);
+    w.run();
+    assert!(w.world.resource::<LightSet>().environment.is_none());
+    assert_eq!(w.film().frames(), 1);
 }
 
 #[test]
