@@ -5,7 +5,7 @@ use clap::{Args, Parser, Subcommand};
 use indicatif::{ProgressBar, ProgressStyle};
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
-use std::time::Instant;
+use std::time::{Duration, Instant};
 use sylva::engine::film::{ImageKind, Tile};
 use sylva::engine::tlas::TopLevel;
 use sylva::prelude::*;
@@ -57,6 +57,15 @@ struct SceneArgs {
     threads: u16,
 }
 
+/// Quality presets of `--preset`.
+#[derive(clap::ValueEnum, Clone, Copy, Debug, PartialEq, Eq)]
+enum Preset {
+    /// 1 camera sample and 1 light sample per hit: fast frames to refine progressively.
+    Interactive,
+    /// 4 camera samples and 4 light samples per hit.
+    Still,
+}
+
 #[derive(Args, Debug)]
 struct RenderArgs {
     #[command(flatten)]
@@ -68,13 +77,34 @@ struct RenderArgs {
     /// Image height in pixels.
     #[arg(long, default_value_t = 480, value_parser = clap::value_parser!(u32).range(1..=16384))]
     height: u32,
-    /// Camera samples per pixel.
-    #[arg(long, default_value_t = 4, value_parser = clap::value_parser!(u32).range(1..=65536))]
-    spp: u32,
+    /// Quality preset: interactive (1 camera sample, 1 light sample per hit) or still
+    /// (4 and 4). --spp and --light-samples override it.
+    #[arg(long, value_enum)]
+    preset: Option<Preset>,
+    /// Camera samples per pixel per frame [default: 4, or the preset's].
+    #[arg(long, value_parser = clap::value_parser!(u32).range(1..=65536))]
+    spp: Option<u32>,
     /// Sky shadow rays per camera hit, or virtual lights sampled per hit with --env
-    /// (0 = sun only).
-    #[arg(long, visible_alias = "light-samples", default_value_t = 2, value_parser = clap::value_parser!(u32).range(0..=1024))]
-    sky_samples: u32,
+    /// (0 = sun only) [default: 2, or the preset's].
+    #[arg(long, visible_alias = "light-samples", value_parser = clap::value_parser!(u32).range(0..=1024))]
+    sky_samples: Option<u32>,
+    /// Progressive frames the image should hold (each with new random numbers) [default: 1].
+    /// With --resume, the total including the checkpoint's frames.
+    #[arg(long, value_parser = clap::value_parser!(u32).range(1..=10_000_000))]
+    frames: Option<u32>,
+    /// Refine until this much time is spent (e.g. 5s, 500ms, 2m); --frames then caps it.
+    #[arg(long, value_parser = parse_duration)]
+    time: Option<Duration>,
+    /// Also write the image every K frames, as OUT.fNNNNNN.EXT.
+    #[arg(long, value_name = "K", value_parser = clap::value_parser!(u32).range(1..))]
+    snapshot_every: Option<u32>,
+    /// Save the exact accumulation state at the end, to resume later with --resume.
+    #[arg(long, value_name = "FILE")]
+    checkpoint: Option<PathBuf>,
+    /// Continue a checkpoint (same scene and settings): the result is bit for bit what
+    /// one uninterrupted run would give.
+    #[arg(long, value_name = "FILE")]
+    resume: Option<PathBuf>,
     /// Light the scene with a latitude-longitude HDR environment map (.hdr or .exr)
     /// instead of the scene's sun and sky.
     #[arg(long, value_name = "FILE")]
@@ -201,6 +231,62 @@ fn peak_memory_bytes() -> Option<u64> {
     Some(kb * 1024)
 }
 
+/// `5s`, `500ms`, `2m`, `1.5s` → a duration.
+fn parse_duration(text: &str) -> Result<Duration, String> {
+    let text = text.trim();
+    let (number, unit) = text
+        .find(|c: char| c.is_ascii_alphabetic())
+        .map_or((text, "s"), |i| text.split_at(i));
+    let value: f64 = number
+        .trim()
+        .parse()
+        .map_err(|_| format!("'{text}' is not a duration (examples: 5s, 500ms, 2m)"))?;
+    let seconds = match unit {
+        "ms" => value / 1e3,
+        "s" => value,
+        "m" | "min" => value * 60.0,
+        "h" => value * 3600.0,
+        _ => {
+            return Err(format!(
+                "unknown unit '{unit}' in '{text}' (use ms, s, m or h)"
+            ));
+        }
+    };
+    if !(seconds.is_finite() && seconds > 0.0 && seconds < 1e7) {
+        return Err(format!("'{text}' must be a positive duration"));
+    }
+    Ok(Duration::from_secs_f64(seconds))
+}
+
+/// Identifies everything a checkpoint's pixels depend on.
+fn checkpoint_fingerprint(args: &RenderArgs, width: u32, spp: u32, samples: u32) -> u64 {
+    let text = format!(
+        "{}|{}|{}x{}|{}|{}|{:?}|{}",
+        scene_label(&args.scene),
+        args.scene.seed,
+        width,
+        args.height,
+        spp,
+        samples,
+        args.env,
+        args.lights
+    );
+    text.bytes().fold(0xcbf2_9ce4_8422_2325u64, |h, b| {
+        (h ^ b as u64).wrapping_mul(0x1000_0000_01b3)
+    })
+}
+
+/// `out.png` → `out.f000016.png`.
+fn snapshot_path(out: &Path, frames: u32) -> PathBuf {
+    let stem = out
+        .file_stem()
+        .map_or("sylva".into(), |s| s.to_string_lossy().into_owned());
+    let extension = out
+        .extension()
+        .map_or("png".into(), |e| e.to_string_lossy().into_owned());
+    out.with_file_name(format!("{stem}.f{frames:06}.{extension}"))
+}
+
 fn render(args: RenderArgs) -> Result<()> {
     check_output_path(&args.out)?;
     if !args.exposure.is_finite() {
@@ -237,10 +323,17 @@ fn render(args: RenderArgs) -> Result<()> {
     let width = args
         .width
         .unwrap_or_else(|| ((args.height as f32 * aspect).round() as u32).clamp(1, 16384));
+    let (preset_spp, preset_samples) = match args.preset {
+        Some(Preset::Interactive) => (1, 1),
+        Some(Preset::Still) => (4, 4),
+        None => (4, 2),
+    };
+    let spp = args.spp.unwrap_or(preset_spp);
+    let samples = args.sky_samples.unwrap_or(preset_samples);
     scene.camera.width = width;
     scene.camera.height = args.height;
-    scene.camera.samples_per_pixel = args.spp;
-    scene.camera.sky_samples = args.sky_samples;
+    scene.camera.samples_per_pixel = spp;
+    scene.camera.sky_samples = samples;
     scene.camera.exposure = args.exposure;
     let stats = scene.stats();
     let (generate_time, blas_time) = (scene.generate_time, scene.blas_time);
@@ -248,10 +341,16 @@ fn render(args: RenderArgs) -> Result<()> {
     if let Some(environment) = environment {
         world.spawn(environment);
     }
-    world.entity_mut(spawned.camera).insert(ImageOutput {
-        path: args.out.clone(),
-        after_frames: 1,
-    });
+    let fingerprint = checkpoint_fingerprint(&args, width, spp, samples);
+    if let Some(path) = &args.resume {
+        let film = Film::read_checkpoint(path, fingerprint)?;
+        world.entity_mut(spawned.camera).insert(film);
+    }
+    let resumed_frames = world.get::<Film>(spawned.camera).map_or(0, Film::frames);
+    let target_frames = args.frames.unwrap_or(1);
+    if args.time.is_none() && target_frames <= resumed_frames {
+        bail!("the checkpoint already holds {resumed_frames} frames; ask for more with --frames");
+    }
 
     let tiles = Tile::grid(
         width,
@@ -261,13 +360,17 @@ fn render(args: RenderArgs) -> Result<()> {
     .len() as u64;
     let bar = if args.quiet {
         ProgressBar::hidden()
+    } else if args.time.is_some() {
+        ProgressBar::new_spinner()
     } else {
-        ProgressBar::new(tiles)
+        ProgressBar::new(tiles * (target_frames - resumed_frames) as u64)
     };
     bar.set_style(
-        ProgressStyle::with_template(
-            "{spinner} rendering [{bar:40}] {pos}/{len} tiles, {elapsed_precise} (eta {eta})",
-        )
+        ProgressStyle::with_template(if args.time.is_some() {
+            "{spinner} refining: {msg}, {elapsed_precise}"
+        } else {
+            "{spinner} rendering [{bar:40}] {pos}/{len} tiles, {elapsed_precise} (eta {eta})"
+        })
         .expect("the template is valid")
         .progress_chars("=> "),
     );
@@ -275,22 +378,46 @@ fn render(args: RenderArgs) -> Result<()> {
     world.insert_resource(TileProgress(Some(Arc::new(move |_| tick.inc(1)))));
 
     let start = Instant::now();
-    frame_schedule().run(&mut world);
+    let mut schedule = frame_schedule();
+    loop {
+        schedule.run(&mut world);
+        let frames = world.get::<Film>(spawned.camera).map_or(0, Film::frames);
+        if args.time.is_some() {
+            bar.set_message(format!(
+                "{frames} frames, {} spp",
+                frames as u64 * spp as u64
+            ));
+        }
+        if let Some(every) = args.snapshot_every
+            && frames.is_multiple_of(every)
+        {
+            let film = world
+                .get::<Film>(spawned.camera)
+                .expect("cameras have films");
+            film.write(&snapshot_path(&args.out, frames), args.exposure)?;
+        }
+        let done = match args.time {
+            Some(budget) => start.elapsed() >= budget || frames >= args.frames.unwrap_or(u32::MAX),
+            None => frames >= target_frames,
+        };
+        if done {
+            break;
+        }
+    }
     let wall = start.elapsed();
     bar.finish_and_clear();
 
-    for result in &world.resource::<OutputLog>().0 {
-        if let Err(e) = result {
-            bail!("{e}");
-        }
-    }
     let film = world
         .get::<Film>(spawned.camera)
         .ok_or_else(|| anyhow::anyhow!("the camera has no film"))?;
+    film.write(&args.out, args.exposure)?;
+    if let Some(path) = &args.checkpoint {
+        film.write_checkpoint(path, fingerprint)?;
+    }
     let render_stats = world.resource::<RenderStats>();
     let tlas = world.resource::<TopLevelState>();
-    let render_s = render_stats.last_render.as_secs_f64();
-    let rays = render_stats.last_frame.rays();
+    let render_s = render_stats.total_render.as_secs_f64();
+    let rays = render_stats.total.rays();
     if film.rejected_samples() > 0 {
         eprintln!(
             "warning: {} NaN/Inf samples were dropped",
@@ -298,12 +425,15 @@ fn render(args: RenderArgs) -> Result<()> {
         );
     }
     if !args.quiet {
+        let rendered = render_stats.frames;
         println!(
-            "{}: {}x{} at {} spp -> {}\n  {} instances, {} instanced triangles ({} unique), BLAS build {:.2} s, TLAS build {:.1} ms, scene generation {:.2} s\n  render {:.2} s, {:.2} M rays/s ({} camera + {} shadow rays), {:.2} transparency segments per camera ray, total {:.2} s",
+            "{}: {}x{}, {} frames at {} spp ({} spp in all) -> {}\n  {} instances, {} instanced triangles ({} unique), BLAS build {:.2} s, TLAS build {:.1} ms, scene generation {:.2} s\n  render {:.2} s ({:.3} s per frame), {:.2} M rays/s ({} camera + {} shadow rays), {:.2} transparency segments per camera ray, total {:.2} s",
             scene_label(&args.scene),
             width,
             args.height,
-            args.spp,
+            film.frames(),
+            spp,
+            film.frames() as u64 * spp as u64,
             args.out.display(),
             group(stats.instances as u64),
             group(stats.instanced_triangles),
@@ -312,10 +442,11 @@ fn render(args: RenderArgs) -> Result<()> {
             tlas.last_build.as_secs_f64() * 1e3,
             generate_time.as_secs_f64(),
             render_s,
+            render_s / rendered.max(1) as f64,
             rays as f64 / render_s.max(1e-9) / 1e6,
-            group(render_stats.last_frame.closest_rays),
-            group(render_stats.last_frame.any_rays),
-            render_stats.last_frame.segments_per_closest_ray(),
+            group(render_stats.total.closest_rays),
+            group(render_stats.total.any_rays),
+            render_stats.total.segments_per_closest_ray(),
             wall.as_secs_f64(),
         );
     }

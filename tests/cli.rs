@@ -355,3 +355,140 @@ fn an_hdr_environment_lights_the_scene_and_bad_maps_are_errors() {
     assert_eq!(run.status.code(), Some(1), "{stderr}");
     assert!(stderr.contains("sky.hdr"), "{stderr}");
 }
+
+/// Renders a 64×24 EXR of the default scene with extra arguments; returns its pixels.
+fn render_exr(dir: &Path, name: &str, extra: &[&str]) -> Vec<[f32; 4]> {
+    let out = dir.join(name);
+    let mut args = vec![
+        "render", "--width", "64", "--height", "24", "--spp", "1", "--quiet", "--out",
+    ];
+    args.push(out.to_str().unwrap());
+    args.extend_from_slice(extra);
+    let run = sylva(&args);
+    assert!(
+        run.status.success(),
+        "{}",
+        String::from_utf8_lossy(&run.stderr)
+    );
+    read_exr(&out)
+}
+
+#[test]
+fn resuming_a_checkpoint_equals_one_uninterrupted_run_for_any_thread_count() {
+    let dir = temp_dir("resume");
+    let checkpoint = dir.join("half.film");
+    let whole = render_exr(&dir, "whole.exr", &["--frames", "4", "--threads", "2"]);
+    let half = render_exr(
+        &dir,
+        "half.exr",
+        &[
+            "--frames",
+            "2",
+            "--checkpoint",
+            checkpoint.to_str().unwrap(),
+        ],
+    );
+    let resumed = render_exr(
+        &dir,
+        "resumed.exr",
+        &[
+            "--frames",
+            "4",
+            "--threads",
+            "1",
+            "--resume",
+            checkpoint.to_str().unwrap(),
+        ],
+    );
+    assert!(whole == resumed, "resumed ≠ uninterrupted");
+    assert!(whole != half, "more frames change the image");
+    let one = render_exr(&dir, "one.exr", &["--frames", "4", "--threads", "1"]);
+    assert!(whole == one, "the thread count changed the image");
+
+    // Other settings cannot resume it.
+    let run = sylva(&[
+        "render",
+        "--width",
+        "64",
+        "--height",
+        "24",
+        "--spp",
+        "2",
+        "--frames",
+        "4",
+        "--resume",
+        checkpoint.to_str().unwrap(),
+        "--out",
+        dir.join("x.png").to_str().unwrap(),
+    ]);
+    let stderr = String::from_utf8_lossy(&run.stderr);
+    assert_eq!(run.status.code(), Some(1), "{stderr}");
+    assert!(
+        stderr.contains("half.film") && stderr.contains("other settings"),
+        "{stderr}"
+    );
+}
+
+#[test]
+fn snapshots_time_budgets_and_presets() {
+    let dir = temp_dir("progressive");
+    let out = dir.join("p.png");
+    let run = sylva(&[
+        "render",
+        "--width",
+        "32",
+        "--height",
+        "24",
+        "--preset",
+        "interactive",
+        "--frames",
+        "4",
+        "--snapshot-every",
+        "2",
+        "--out",
+        out.to_str().unwrap(),
+    ]);
+    let stdout = String::from_utf8_lossy(&run.stdout);
+    assert!(
+        run.status.success(),
+        "{}",
+        String::from_utf8_lossy(&run.stderr)
+    );
+    assert!(stdout.contains("4 frames at 1 spp"), "{stdout}");
+    for frames in [2, 4] {
+        assert!(
+            dir.join(format!("p.f{frames:06}.png")).is_file(),
+            "snapshot {frames}"
+        );
+    }
+    assert!(!dir.join("p.f000003.png").exists());
+
+    let run = sylva(&[
+        "render",
+        "--width",
+        "16",
+        "--height",
+        "12",
+        "--time",
+        "300ms",
+        "--frames",
+        "1000",
+        "--out",
+        out.to_str().unwrap(),
+    ]);
+    let stdout = String::from_utf8_lossy(&run.stdout);
+    assert!(
+        run.status.success(),
+        "{}",
+        String::from_utf8_lossy(&run.stderr)
+    );
+    // How many frames fit depends on the machine; the budget only has to end the run.
+    assert!(
+        stdout.contains(" frames at 4 spp") && out.is_file(),
+        "{stdout}"
+    );
+
+    let bad = sylva(&["render", "--time", "soon", "--out", out.to_str().unwrap()]);
+    assert_eq!(bad.status.code(), Some(2));
+    assert!(String::from_utf8_lossy(&bad.stderr).contains("not a duration"));
+}

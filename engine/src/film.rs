@@ -134,7 +134,38 @@ pub struct Film {
     frames: u32,
     rejected: u64,
     resets: u64,
+    resume_pending: bool,
 }
+
+/// Why a checkpoint could not be used.
+#[derive(Debug, thiserror::Error)]
+pub enum CheckpointError {
+    /// Reading failed.
+    #[error("{}: cannot read the checkpoint: {source}", path.display())]
+    Io {
+        /// The file.
+        path: std::path::PathBuf,
+        /// Why.
+        source: std::io::Error,
+    },
+    /// Not a checkpoint, or a damaged one.
+    #[error("{}: not a Sylva film checkpoint ({reason})", path.display())]
+    Format {
+        /// The file.
+        path: std::path::PathBuf,
+        /// What is wrong.
+        reason: String,
+    },
+    /// Written for another scene, view or sampling settings.
+    #[error("{}: the checkpoint was rendered with other settings (scene, seed, size or sampling); resume with the same ones", path.display())]
+    Mismatch {
+        /// The file.
+        path: std::path::PathBuf,
+    },
+}
+
+const CHECKPOINT_MAGIC: &[u8; 8] = b"SYLVAFLM";
+const CHECKPOINT_VERSION: u32 = 1;
 
 impl Default for Film {
     fn default() -> Self {
@@ -154,7 +185,91 @@ impl Film {
             frames: 0,
             rejected: 0,
             resets: 0,
+            resume_pending: false,
         }
+    }
+
+    /// True from loading a checkpoint until the next frame is added: that frame
+    /// continues the checkpoint's sequence instead of restarting accumulation.
+    pub fn awaiting_resume(&self) -> bool {
+        self.resume_pending
+    }
+
+    /// Saves the exact accumulation state (f64 sums, counts, frame count), atomically.
+    /// `fingerprint` identifies the settings it belongs to; [`Film::read_checkpoint`]
+    /// refuses another.
+    pub fn write_checkpoint(&self, path: &Path, fingerprint: u64) -> Result<(), OutputError> {
+        let mut bytes = Vec::with_capacity(48 + self.sums.len() * 32);
+        bytes.extend_from_slice(CHECKPOINT_MAGIC);
+        bytes.extend_from_slice(&CHECKPOINT_VERSION.to_le_bytes());
+        bytes.extend_from_slice(&fingerprint.to_le_bytes());
+        for v in [self.width, self.height, self.frames] {
+            bytes.extend_from_slice(&v.to_le_bytes());
+        }
+        for v in [self.rejected, self.resets] {
+            bytes.extend_from_slice(&v.to_le_bytes());
+        }
+        for (sum, count) in self.sums.iter().zip(&self.counts) {
+            for v in sum {
+                bytes.extend_from_slice(&v.to_le_bytes());
+            }
+            bytes.extend_from_slice(&count.to_le_bytes());
+        }
+        write_atomically(path, |tmp| {
+            std::fs::write(tmp, &bytes).map_err(|e| e.to_string())
+        })
+    }
+
+    /// Loads a checkpoint written with the same `fingerprint`; the next frame added
+    /// continues it.
+    pub fn read_checkpoint(path: &Path, fingerprint: u64) -> Result<Film, CheckpointError> {
+        let bytes = std::fs::read(path).map_err(|source| CheckpointError::Io {
+            path: path.to_owned(),
+            source,
+        })?;
+        let format = |reason: &str| CheckpointError::Format {
+            path: path.to_owned(),
+            reason: reason.into(),
+        };
+        let mut at = 0usize;
+        let mut take = |n: usize| -> Result<&[u8], CheckpointError> {
+            let slice = bytes.get(at..at + n).ok_or_else(|| format("truncated"))?;
+            at += n;
+            Ok(slice)
+        };
+        if take(8)? != CHECKPOINT_MAGIC {
+            return Err(format("wrong magic number"));
+        }
+        let u32_at = |b: &[u8]| u32::from_le_bytes(b.try_into().expect("4 bytes"));
+        let u64_at = |b: &[u8]| u64::from_le_bytes(b.try_into().expect("8 bytes"));
+        if u32_at(take(4)?) != CHECKPOINT_VERSION {
+            return Err(format("unknown version"));
+        }
+        if u64_at(take(8)?) != fingerprint {
+            return Err(CheckpointError::Mismatch {
+                path: path.to_owned(),
+            });
+        }
+        let (width, height, frames) = (u32_at(take(4)?), u32_at(take(4)?), u32_at(take(4)?));
+        let (rejected, resets) = (u64_at(take(8)?), u64_at(take(8)?));
+        let pixels = width as usize * height as usize;
+        let body = take(
+            pixels
+                .checked_mul(32)
+                .ok_or_else(|| format("absurd size"))?,
+        )?;
+        let mut film = Film::new(width, height);
+        for (i, chunk) in body.chunks_exact(32).enumerate() {
+            let f =
+                |k: usize| f64::from_le_bytes(chunk[k * 8..k * 8 + 8].try_into().expect("8 bytes"));
+            film.sums[i] = [f(0), f(1), f(2)];
+            film.counts[i] = u64_at(&chunk[24..32]);
+        }
+        film.frames = frames;
+        film.rejected = rejected;
+        film.resets = resets;
+        film.resume_pending = true;
+        Ok(film)
     }
 
     /// Width.
@@ -207,6 +322,7 @@ impl Film {
         }
         self.frames += 1;
         self.rejected += frame.rejected;
+        self.resume_pending = false;
     }
 
     /// Adds one sample to one pixel (for tests and tools that splat).
@@ -432,6 +548,34 @@ mod tests {
         film.add_sample(0, 0, Vec3::splat(f32::INFINITY));
         assert_eq!(film.pixel(0, 0), [1.0; 3]);
         assert_eq!(film.rejected_samples(), 2);
+    }
+
+    #[test]
+    fn checkpoints_round_trip_exactly_and_refuse_damage() {
+        let mut film = Film::new(3, 2);
+        film.add_sample(1, 1, Vec3::new(0.1, 1e-30, 7.0));
+        film.add_sample(2, 0, Vec3::new(1e30, 0.3, 0.0));
+        film.frames = 5;
+        let dir = std::env::temp_dir().join(format!("sylva-film-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        let path = dir.join("f.film");
+        film.write_checkpoint(&path, 42).unwrap();
+        let loaded = Film::read_checkpoint(&path, 42).unwrap();
+        assert!(loaded.awaiting_resume());
+        assert_eq!(
+            (loaded.sums.clone(), loaded.counts.clone(), loaded.frames),
+            (film.sums.clone(), film.counts.clone(), 5)
+        );
+        assert!(matches!(
+            Film::read_checkpoint(&path, 43),
+            Err(CheckpointError::Mismatch { .. })
+        ));
+        let bytes = std::fs::read(&path).unwrap();
+        for cut in [0, 7, 20, bytes.len() - 1] {
+            std::fs::write(&path, &bytes[..cut]).unwrap();
+            let e = Film::read_checkpoint(&path, 42).unwrap_err();
+            assert!(matches!(e, CheckpointError::Format { .. }), "{cut}: {e}");
+        }
     }
 
     #[test]

@@ -188,11 +188,11 @@ pub fn render_tiles(
     };
     let mut frame_stats = sylva_engine::bvh::TraversalStats::default();
     for (camera, transform, film, mut frame) in &mut cameras {
-        let restart = scene_changed
-            || camera.is_changed()
-            || transform.is_changed()
-            || film.width() != camera.width
-            || film.height() != camera.height;
+        let resized = film.width() != camera.width || film.height() != camera.height;
+        // A film loaded from a checkpoint continues its frame sequence even though the
+        // world around it is new.
+        let changed = scene_changed || camera.is_changed() || transform.is_changed();
+        let restart = resized || (changed && !film.awaiting_resume());
         let frame_index = if restart { 0 } else { film.frames() };
         let view = CameraView::new(&camera, &transform.to_affine());
         let params = RenderParams::for_camera(&camera, seed.0);
