@@ -316,6 +316,7 @@ fn render(args: RenderArgs) -> Result<()> {
         // The map carries the sun and the sky: keeping the scene's would count them twice.
         scene.sun = None;
         scene.sky = None;
+        scene.environment = None;
     }
     let aspect = aspect
         .filter(|a| a.is_finite() && *a > 0.0)

@@ -5,6 +5,7 @@
 
 use crate::placement::{PlacementRule, poisson_disk};
 use crate::random::SceneRng;
+use crate::sky::PreethamSky;
 use crate::species::{self, LeafShape, PlantKind, PlantParams};
 use crate::terrain::{HeightField, TerrainParams, ground_texture};
 use crate::{Plant, SceneBuild, SceneError, Species};
@@ -16,6 +17,7 @@ use std::time::Instant;
 use sylva_engine::bvh::BuildParams;
 use sylva_engine::camera::Camera;
 use sylva_engine::components::Transform;
+use sylva_engine::environment::EnvironmentLight;
 use sylva_engine::geometry::{Geometry, GeometryLibrary};
 use sylva_engine::light::{DirectionalLight, SkyLight};
 use sylva_engine::mesh::TriangleMesh;
@@ -129,7 +131,7 @@ pub struct EcosystemSpec {
     /// The sun.
     pub sun: Option<SunSpec>,
     /// The sky.
-    pub sky: Option<SkyLight>,
+    pub sky: Option<SkySpec>,
     /// The view.
     pub camera: CameraSpec,
 }
@@ -183,12 +185,26 @@ fn layer(name: &str, species: Vec<SpeciesSpec>, count: u32) -> LayerSpec {
     }
 }
 
-fn default_sky() -> SkyLight {
-    SkyLight {
-        zenith: Vec3::new(0.22, 0.42, 0.95),
-        horizon: Vec3::new(0.75, 0.85, 1.0),
-        ground: Vec3::new(0.12, 0.11, 0.08),
-    }
+/// The sky of an ecosystem.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub enum SkySpec {
+    /// A zenith–horizon gradient, sampled with cosine-weighted rays.
+    Gradient(SkyLight),
+    /// The Preetham daylight model for the scene's sun, baked into an environment map
+    /// and lit through virtual lights.
+    Preetham {
+        /// Atmospheric turbidity (2–10).
+        turbidity: f32,
+    },
+}
+
+/// Texels across the baked procedural sky.
+const SKY_MAP_WIDTH: u32 = 256;
+/// Virtual lights of the baked procedural sky.
+const SKY_LIGHTS: usize = 256;
+
+fn default_sky() -> SkySpec {
+    SkySpec::Preetham { turbidity: 3.0 }
 }
 
 fn default_sun() -> SunSpec {
@@ -702,7 +718,20 @@ pub fn build(spec: &EcosystemSpec, seed: u64) -> Result<SceneBuild, SceneError> 
         shaders,
         plants,
         sun: spec.sun.map(|s| s.light()),
-        sky: spec.sky,
+        sky: match spec.sky {
+            Some(SkySpec::Gradient(gradient)) => Some(gradient),
+            _ => None,
+        },
+        environment: match spec.sky {
+            Some(SkySpec::Preetham { turbidity }) => {
+                let sun = spec
+                    .sun
+                    .map_or(Vec3::new(0.3, 0.8, 0.5), |s| s.light().direction);
+                let map = PreethamSky::new(sun, turbidity).to_map(SKY_MAP_WIDTH);
+                Some(EnvironmentLight::new(map, SKY_LIGHTS))
+            }
+            _ => None,
+        },
         camera: Camera {
             vertical_fov: spec.camera.fov.to_radians(),
             ..Camera::default()

@@ -871,6 +871,7 @@ impl GltfScene {
                 horizon: Vec3::splat(0.8),
                 ground: Vec3::splat(0.3),
             }),
+            environment: None,
             camera,
             camera_transform,
             generate_time: start.elapsed(),

@@ -13,6 +13,7 @@ pub mod gltf;
 pub mod placement;
 pub mod random;
 pub mod scene_file;
+pub mod sky;
 pub mod species;
 pub mod terrain;
 
@@ -121,8 +122,10 @@ pub struct SceneBuild {
     pub plants: Vec<Plant>,
     /// The sun.
     pub sun: Option<DirectionalLight>,
-    /// The sky.
+    /// The gradient sky, if any.
     pub sky: Option<SkyLight>,
+    /// An environment light (the baked procedural sky, or a map), if any.
+    pub environment: Option<sylva_engine::environment::EnvironmentLight>,
     /// The camera.
     pub camera: Camera,
     /// Where the camera stands.
@@ -230,6 +233,9 @@ pub fn spawn(world: &mut World, scene: SceneBuild) -> SpawnedScene {
     }
     if let Some(sky) = scene.sky {
         world.spawn(sky);
+    }
+    if let Some(environment) = scene.environment {
+        world.spawn(environment);
     }
     let camera = world.spawn((scene.camera, scene.camera_transform)).id();
     SpawnedScene { camera, plants }

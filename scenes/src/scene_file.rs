@@ -41,10 +41,10 @@
 //! azimuth = -50.0
 //! irradiance = [3.2, 3.0, 2.7]
 //!
-//! [sky]
-//! zenith = [0.22, 0.42, 0.95]
-//! horizon = [0.75, 0.85, 1.0]
-//! ground = [0.12, 0.11, 0.08]
+//! [sky]                    # the Preetham daylight model for the sun above …
+//! turbidity = 3.0
+//! # … or a gradient: zenith = [0.22, 0.42, 0.95], horizon = [0.75, 0.85, 1.0],
+//! # ground = [0.12, 0.11, 0.08]
 //!
 //! [camera]
 //! eye = [0.0, 45.0]        # x, z; the height is above the ground
@@ -55,7 +55,7 @@
 //! ```
 
 use crate::ecosystem::{
-    CameraSpec, EcosystemSpec, LayerSpec, PRESETS, SpeciesSource, SpeciesSpec, SunSpec,
+    CameraSpec, EcosystemSpec, LayerSpec, PRESETS, SkySpec, SpeciesSource, SpeciesSpec, SunSpec,
 };
 use crate::species::{LeafShape, PlantKind};
 use glam::{Vec2, Vec3};
@@ -151,9 +151,10 @@ struct SunDoc {
 #[derive(Deserialize)]
 #[serde(deny_unknown_fields)]
 struct SkyDoc {
-    zenith: Spanned<[f32; 3]>,
-    horizon: Spanned<[f32; 3]>,
-    ground: Spanned<[f32; 3]>,
+    turbidity: Option<Spanned<f32>>,
+    zenith: Option<Spanned<[f32; 3]>>,
+    horizon: Option<Spanned<[f32; 3]>>,
+    ground: Option<Spanned<[f32; 3]>>,
 }
 
 #[derive(Deserialize)]
@@ -351,10 +352,22 @@ impl SceneFile {
             });
         }
         if let Some(s) = &doc.sky {
-            spec.sky = Some(SkyLight {
-                zenith: cx.color(&s.zenith, "sky.zenith", 1e6)?,
-                horizon: cx.color(&s.horizon, "sky.horizon", 1e6)?,
-                ground: cx.color(&s.ground, "sky.ground", 1e6)?,
+            spec.sky = Some(match (&s.turbidity, &s.zenith, &s.horizon, &s.ground) {
+                (Some(t), None, None, None) => SkySpec::Preetham {
+                    turbidity: cx.check(t, "sky.turbidity", 1.7, 10.0)?,
+                },
+                (None, Some(zenith), Some(horizon), Some(ground)) => SkySpec::Gradient(SkyLight {
+                    zenith: cx.color(zenith, "sky.zenith", 1e6)?,
+                    horizon: cx.color(horizon, "sky.horizon", 1e6)?,
+                    ground: cx.color(ground, "sky.ground", 1e6)?,
+                }),
+                _ => {
+                    return Err(cx.error(
+                        None,
+                        "sky",
+                        "give either `turbidity` (the Preetham sky) or all of `zenith`, `horizon` and `ground` (a gradient)".into(),
+                    ));
+                }
             });
         }
         if let Some(c) = &doc.camera {
@@ -666,6 +679,8 @@ target = [0, 0]
                 "out of range",
             ),
             ("[terrain\n", "my.toml:1:", ""),
+            ("[sky]\nturbidity = 3\nzenith = [0, 0, 1]\n", "my.toml: sky", "either"),
+            ("[sky]\nturbidity = 30\n", "my.toml:2:13: sky.turbidity", "out of range"),
         ];
         for (text, place, what) in cases {
             let e = parse(text).unwrap_err().to_string();
