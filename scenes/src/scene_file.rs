@@ -679,8 +679,16 @@ target = [0, 0]
                 "out of range",
             ),
             ("[terrain\n", "my.toml:1:", ""),
-            ("[sky]\nturbidity = 3\nzenith = [0, 0, 1]\n", "my.toml: sky", "either"),
-            ("[sky]\nturbidity = 30\n", "my.toml:2:13: sky.turbidity", "out of range"),
+            (
+                "[sky]\nturbidity = 3\nzenith = [0, 0, 1]\n",
+                "my.toml: sky",
+                "either",
+            ),
+            (
+                "[sky]\nturbidity = 30\n",
+                "my.toml:2:13: sky.turbidity",
+                "out of range",
+            ),
         ];
         for (text, place, what) in cases {
             let e = parse(text).unwrap_err().to_string();
