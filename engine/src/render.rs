@@ -209,6 +209,24 @@ impl<'a> RenderScene<'a> {
         }
     }
 
+    /// The shading cosine toward a directional light at `direction`, when the light is
+    /// above both normals and its shadow ray is unoccluded.
+    #[inline]
+    fn lit_cosine(
+        &self,
+        surface: &SurfacePoint,
+        direction: Vec3,
+        stats: &mut TraversalStats,
+    ) -> Option<f32> {
+        let (ng, l) = (surface.geometric_normal, Vec3A::from(direction));
+        let cos = surface.shading_normal.dot(l);
+        if cos <= 0.0 || ng.dot(l) <= 0.0 {
+            return None;
+        }
+        let shadow = Ray::new(surface.point.offset_origin(ng, l), l);
+        (!self.occluded(&shadow, stats)).then_some(cos)
+    }
+
     /// Radiance arriving along `ray`: direct sun and sky (or environment: `sky_samples`
     /// virtual lights picked by luminance) on Lambertian surfaces.
     pub fn radiance(
@@ -226,13 +244,7 @@ impl<'a> RenderScene<'a> {
         let (ng, ns) = (surface.geometric_normal, surface.shading_normal);
         let mut radiance = Vec3A::ZERO;
         for light in &self.lights.directional {
-            let l = Vec3A::from(light.direction);
-            let cos = ns.dot(l);
-            if cos <= 0.0 || ng.dot(l) <= 0.0 {
-                continue;
-            }
-            let shadow = Ray::new(surface.point.offset_origin(ng, l), l);
-            if !self.occluded(&shadow, stats) {
+            if let Some(cos) = self.lit_cosine(&surface, light.direction, stats) {
                 radiance +=
                     albedo * Vec3A::from(light.irradiance) * (cos * std::f32::consts::FRAC_1_PI);
             }
@@ -243,13 +255,7 @@ impl<'a> RenderScene<'a> {
                 let Some(light) = environment.lights.sample(key.get(SKY_DIMENSION + k)) else {
                     continue;
                 };
-                let l = Vec3A::from(light.direction);
-                let cos = ns.dot(l);
-                if cos <= 0.0 || ng.dot(l) <= 0.0 {
-                    continue;
-                }
-                let shadow = Ray::new(surface.point.offset_origin(ng, l), l);
-                if !self.occluded(&shadow, stats) {
+                if let Some(cos) = self.lit_cosine(&surface, light.direction, stats) {
                     let weight = cos * std::f32::consts::FRAC_1_PI
                         / (light.probability * sky_samples as f32);
                     radiance += albedo * Vec3A::from(light.irradiance) * weight;

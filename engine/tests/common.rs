@@ -8,11 +8,12 @@
 )]
 
 use glam::{Affine3A, Quat, Vec3, Vec3A};
-use sylva_engine::geometry::GeometryLibrary;
+use sylva_engine::bvh::BuildParams;
+use sylva_engine::geometry::{Geometry, GeometryLibrary};
 use sylva_engine::math::Ray;
 use sylva_engine::mesh::TriangleMesh;
 use sylva_engine::sampling::SplitMix64;
-use sylva_engine::tlas::InstanceDesc;
+use sylva_engine::tlas::{InstanceDesc, TopLevel};
 use sylva_engine::triangle::WatertightRay;
 
 /// The engine's SplitMix64 with the vector helpers tests need.
@@ -124,4 +125,30 @@ pub fn random_transform(rng: &mut TestRng, extent: f32, log_scale: (f32, f32)) -
 /// A point in a random direction from `Vec3A::ZERO` at distance `d`.
 pub fn on_sphere(rng: &mut TestRng, d: f32) -> Vec3A {
     Vec3A::from(rng.unit()) * d
+}
+
+/// A 100 m × 100 m plane at y = 0 facing +Y (shader 0), instanced once.
+pub fn ground_plane() -> (GeometryLibrary, TopLevel) {
+    let mut library = GeometryLibrary::default();
+    let plane = TriangleMesh {
+        positions: vec![
+            Vec3::new(-50.0, 0.0, -50.0),
+            Vec3::new(50.0, 0.0, -50.0),
+            Vec3::new(50.0, 0.0, 50.0),
+            Vec3::new(-50.0, 0.0, 50.0),
+        ],
+        indices: vec![[0, 2, 1], [0, 3, 2]],
+        shaders: vec![0, 0],
+        ..Default::default()
+    };
+    let id = library.add(Geometry::new("plane", plane, BuildParams::BALANCED).unwrap());
+    let top_level = TopLevel::build(
+        &library,
+        &[InstanceDesc {
+            transform: Affine3A::IDENTITY,
+            geometry: id,
+        }],
+        BuildParams::BALANCED,
+    );
+    (library, top_level)
 }

@@ -3,19 +3,18 @@
 
 mod common;
 
-use common::TestRng;
-use glam::{Affine3A, Vec3, Vec3A};
+use common::{TestRng, ground_plane};
+use glam::{Vec3, Vec3A};
 use std::sync::Arc;
-use sylva_engine::bvh::{BuildParams, TraversalStats};
+use sylva_engine::bvh::TraversalStats;
 use sylva_engine::environment::{EnvironmentLight, EnvironmentMap, luminance};
-use sylva_engine::geometry::{Geometry, GeometryLibrary};
+use sylva_engine::geometry::GeometryLibrary;
 use sylva_engine::light::LightSet;
 use sylva_engine::math::Ray;
-use sylva_engine::mesh::TriangleMesh;
 use sylva_engine::render::RenderScene;
 use sylva_engine::sampling::SampleKey;
 use sylva_engine::shading::{Shader, ShaderId, ShaderTable};
-use sylva_engine::tlas::{InstanceDesc, TopLevel};
+use sylva_engine::tlas::TopLevel;
 
 const ALBEDO: Vec3 = Vec3::new(0.7, 0.5, 0.3);
 
@@ -58,38 +57,38 @@ struct Plane {
     shaders: ShaderTable,
 }
 
-fn plane() -> Plane {
-    let mut library = GeometryLibrary::default();
-    let mesh = TriangleMesh {
-        positions: vec![
-            Vec3::new(-50.0, 0.0, -50.0),
-            Vec3::new(50.0, 0.0, -50.0),
-            Vec3::new(50.0, 0.0, 50.0),
-            Vec3::new(-50.0, 0.0, 50.0),
-        ],
-        indices: vec![[0, 2, 1], [0, 3, 2]],
-        shaders: vec![0, 0],
-        ..Default::default()
-    };
-    let id = library.add(Geometry::new("plane", mesh, BuildParams::BALANCED).unwrap());
-    let top_level = TopLevel::build(
-        &library,
-        &[InstanceDesc {
-            transform: Affine3A::IDENTITY,
-            geometry: id,
-        }],
-        BuildParams::BALANCED,
-    );
-    Plane {
-        library,
-        top_level,
-        shaders: ShaderTable::new(vec![Shader::color(ShaderId(0), ALBEDO)]),
+impl Plane {
+    fn new() -> Self {
+        let (library, top_level) = ground_plane();
+        Self {
+            library,
+            top_level,
+            shaders: ShaderTable::new(vec![Shader::color(ShaderId(0), ALBEDO)]),
+        }
+    }
+
+    /// Runs `f` on the plane lit by `environment` alone.
+    fn lit_by<R>(
+        &self,
+        environment: Arc<EnvironmentLight>,
+        f: impl FnOnce(&RenderScene) -> R,
+    ) -> R {
+        let lights = LightSet {
+            environment: Some(environment),
+            ..Default::default()
+        };
+        f(&RenderScene {
+            geometry: &self.library,
+            top_level: &self.top_level,
+            shaders: &self.shaders,
+            lights: &lights,
+        })
     }
 }
 
 #[test]
 fn a_lambertian_plane_converges_to_the_sum_over_the_virtual_lights() {
-    let plane = plane();
+    let plane = Plane::new();
     let environment = Arc::new(EnvironmentLight::new(test_map(30.0), 64));
     // The analytic answer for the discrete set: Σ albedo/π · E_i · max(cos, 0).
     let expected: Vec3 = environment
@@ -126,7 +125,7 @@ fn a_lambertian_plane_converges_to_the_sum_over_the_virtual_lights() {
 
 #[test]
 fn a_sun_a_million_times_brighter_gives_bounded_samples() {
-    let plane = plane();
+    let plane = Plane::new();
     let environment = Arc::new(EnvironmentLight::new(test_map(1e6), 256));
     let total_luminance: f32 = environment
         .lights
@@ -134,18 +133,9 @@ fn a_sun_a_million_times_brighter_gives_bounded_samples() {
         .iter()
         .map(|l| luminance(l.irradiance))
         .sum();
-    let lights = LightSet {
-        environment: Some(environment),
-        ..Default::default()
-    };
-    let scene = RenderScene {
-        geometry: &plane.library,
-        top_level: &plane.top_level,
-        shaders: &plane.shaders,
-        lights: &lights,
-    };
     let ray = Ray::new(Vec3A::new(0.0, 2.0, 0.0), -Vec3A::Y);
-    let (mean, _, max_luminance) = estimate(&scene, &ray, 1, 5_000);
+    let (mean, _, max_luminance) =
+        plane.lit_by(environment, |scene| estimate(scene, &ray, 1, 5_000));
     // Luminance-proportional picking makes every sample's luminance at most
     // albedo_max/π · Σ luminance(E_i): no fireflies, whatever the sun's strength.
     let bound = ALBEDO.max_element() / std::f32::consts::PI * total_luminance;

@@ -158,27 +158,7 @@ fn tile_order_and_thread_count_do_not_change_a_bit() {
 #[test]
 fn lambertian_plane_under_sun_matches_the_analytic_radiance() {
     // A white-ish plane lit by a sun only: L = albedo/π · E · cos θ exactly (no noise).
-    let mut library = GeometryLibrary::default();
-    let plane = TriangleMesh {
-        positions: vec![
-            Vec3::new(-50.0, 0.0, -50.0),
-            Vec3::new(50.0, 0.0, -50.0),
-            Vec3::new(50.0, 0.0, 50.0),
-            Vec3::new(-50.0, 0.0, 50.0),
-        ],
-        indices: vec![[0, 2, 1], [0, 3, 2]],
-        shaders: vec![0, 0],
-        ..Default::default()
-    };
-    let id = library.add(Geometry::new("plane", plane, BuildParams::BALANCED).unwrap());
-    let top_level = TopLevel::build(
-        &library,
-        &[InstanceDesc {
-            transform: Affine3A::IDENTITY,
-            geometry: id,
-        }],
-        BuildParams::BALANCED,
-    );
+    let (library, top_level) = ground_plane();
     let shaders = ShaderTable::new(vec![Shader::color(ShaderId(0), Vec3::new(0.8, 0.5, 0.2))]);
     let sun = Vec3::new(0.3, 0.7, -0.2).normalize();
     let lights = LightSet {
