@@ -11,6 +11,26 @@ fn sylva(args: &[&str]) -> Output {
         .expect("the binary runs")
 }
 
+/// Runs `sylva`, which must succeed; returns its standard output.
+fn succeed(args: &[&str]) -> String {
+    let run = sylva(args);
+    assert!(
+        run.status.success(),
+        "{args:?}: {}",
+        String::from_utf8_lossy(&run.stderr)
+    );
+    String::from_utf8_lossy(&run.stdout).into_owned()
+}
+
+/// Runs `sylva`, which must fail with exit code 1 (a reported error, not a panic or a
+/// usage error); returns its standard error.
+fn fail(args: &[&str]) -> String {
+    let run = sylva(args);
+    let stderr = String::from_utf8_lossy(&run.stderr).into_owned();
+    assert_eq!(run.status.code(), Some(1), "{args:?}: {stderr}");
+    stderr
+}
+
 fn temp_dir(name: &str) -> PathBuf {
     let dir = std::env::temp_dir().join(format!("sylva-cli-{name}-{}", std::process::id()));
     std::fs::create_dir_all(&dir).unwrap();
@@ -213,7 +233,7 @@ fn renders_a_gltf_file_through_its_camera_choice() {
     let dir = temp_dir("gltf");
     let out = dir.join("box.png");
     let model = asset("gltf/BoxTextured/glTF-Binary/BoxTextured.glb");
-    let run = sylva(&[
+    succeed(&[
         "render",
         "--gltf",
         model.to_str().unwrap(),
@@ -224,11 +244,6 @@ fn renders_a_gltf_file_through_its_camera_choice() {
         "--out",
         out.to_str().unwrap(),
     ]);
-    assert!(
-        run.status.success(),
-        "{}",
-        String::from_utf8_lossy(&run.stderr)
-    );
     let png = image::open(&out).unwrap().to_rgb8();
     assert_eq!(
         png.dimensions(),
@@ -239,14 +254,10 @@ fn renders_a_gltf_file_through_its_camera_choice() {
     let corner = png.get_pixel(0, 0);
     assert_ne!(centre, corner, "the box is in the middle of the frame");
 
-    let info = sylva(&["info", "--gltf", model.to_str().unwrap()]);
-    let text = String::from_utf8_lossy(&info.stdout);
-    assert!(
-        info.status.success() && text.contains("instances        1"),
-        "{text}"
-    );
+    let text = succeed(&["info", "--gltf", model.to_str().unwrap()]);
+    assert!(text.contains("instances        1"), "{text}");
 
-    let missing_camera = sylva(&[
+    let stderr = fail(&[
         "render",
         "--gltf",
         model.to_str().unwrap(),
@@ -255,15 +266,11 @@ fn renders_a_gltf_file_through_its_camera_choice() {
         "--out",
         out.to_str().unwrap(),
     ]);
-    let stderr = String::from_utf8_lossy(&missing_camera.stderr);
-    assert_eq!(missing_camera.status.code(), Some(1), "{stderr}");
     assert!(stderr.contains("no camera with index 2"), "{stderr}");
 
     let bad = dir.join("broken.glb");
     std::fs::write(&bad, b"glTF\x02\x00\x00\x00\x10\x00").unwrap();
-    let run = sylva(&["info", "--gltf", bad.to_str().unwrap()]);
-    let stderr = String::from_utf8_lossy(&run.stderr);
-    assert_eq!(run.status.code(), Some(1), "{stderr}");
+    let stderr = fail(&["info", "--gltf", bad.to_str().unwrap()]);
     assert!(stderr.contains("broken.glb"), "{stderr}");
 
     let usage = sylva(&["render", "--camera", "0"]);
@@ -280,7 +287,7 @@ fn scene_files_render_and_their_errors_name_file_line_and_key() {
     )
     .unwrap();
     let out = dir.join("tiny.png");
-    let run = sylva(&[
+    succeed(&[
         "render",
         "--scene",
         good.to_str().unwrap(),
@@ -293,18 +300,11 @@ fn scene_files_render_and_their_errors_name_file_line_and_key() {
         "--out",
         out.to_str().unwrap(),
     ]);
-    assert!(
-        run.status.success(),
-        "{}",
-        String::from_utf8_lossy(&run.stderr)
-    );
     assert!(out.is_file());
 
     let bad = dir.join("bad.toml");
     std::fs::write(&bad, "[terrain]\nsize = 20.0\ncels = 10\n").unwrap();
-    let run = sylva(&["info", "--scene", bad.to_str().unwrap()]);
-    let stderr = String::from_utf8_lossy(&run.stderr);
-    assert_eq!(run.status.code(), Some(1), "{stderr}");
+    let stderr = fail(&["info", "--scene", bad.to_str().unwrap()]);
     assert!(
         stderr.contains("bad.toml:3:1") && stderr.contains("cels"),
         "{stderr}"
@@ -316,7 +316,7 @@ fn an_hdr_environment_lights_the_scene_and_bad_maps_are_errors() {
     let dir = temp_dir("env");
     let out = dir.join("env.png");
     let map = asset("hdr/kloofendal_overcast_1k.hdr");
-    let run = sylva(&[
+    succeed(&[
         "render",
         "--env",
         map.to_str().unwrap(),
@@ -331,11 +331,6 @@ fn an_hdr_environment_lights_the_scene_and_bad_maps_are_errors() {
         "--out",
         out.to_str().unwrap(),
     ]);
-    assert!(
-        run.status.success(),
-        "{}",
-        String::from_utf8_lossy(&run.stderr)
-    );
     let png = image::open(&out).unwrap().to_rgb8();
     assert!(
         png.pixels().any(|p| p.0 != [0, 0, 0]),
@@ -344,15 +339,13 @@ fn an_hdr_environment_lights_the_scene_and_bad_maps_are_errors() {
 
     let bad = dir.join("sky.hdr");
     std::fs::write(&bad, b"#?RADIANCE\nnot a map").unwrap();
-    let run = sylva(&[
+    let stderr = fail(&[
         "render",
         "--env",
         bad.to_str().unwrap(),
         "--out",
         out.to_str().unwrap(),
     ]);
-    let stderr = String::from_utf8_lossy(&run.stderr);
-    assert_eq!(run.status.code(), Some(1), "{stderr}");
     assert!(stderr.contains("sky.hdr"), "{stderr}");
 }
 
@@ -364,12 +357,7 @@ fn render_exr(dir: &Path, name: &str, extra: &[&str]) -> Vec<[f32; 4]> {
     ];
     args.push(out.to_str().unwrap());
     args.extend_from_slice(extra);
-    let run = sylva(&args);
-    assert!(
-        run.status.success(),
-        "{}",
-        String::from_utf8_lossy(&run.stderr)
-    );
+    succeed(&args);
     read_exr(&out)
 }
 
@@ -406,7 +394,7 @@ fn resuming_a_checkpoint_equals_one_uninterrupted_run_for_any_thread_count() {
     assert!(whole == one, "the thread count changed the image");
 
     // Other settings cannot resume it.
-    let run = sylva(&[
+    let stderr = fail(&[
         "render",
         "--width",
         "64",
@@ -421,8 +409,6 @@ fn resuming_a_checkpoint_equals_one_uninterrupted_run_for_any_thread_count() {
         "--out",
         dir.join("x.png").to_str().unwrap(),
     ]);
-    let stderr = String::from_utf8_lossy(&run.stderr);
-    assert_eq!(run.status.code(), Some(1), "{stderr}");
     assert!(
         stderr.contains("half.film") && stderr.contains("other settings"),
         "{stderr}"
@@ -433,7 +419,7 @@ fn resuming_a_checkpoint_equals_one_uninterrupted_run_for_any_thread_count() {
 fn snapshots_time_budgets_and_presets() {
     let dir = temp_dir("progressive");
     let out = dir.join("p.png");
-    let run = sylva(&[
+    let stdout = succeed(&[
         "render",
         "--width",
         "32",
@@ -448,12 +434,6 @@ fn snapshots_time_budgets_and_presets() {
         "--out",
         out.to_str().unwrap(),
     ]);
-    let stdout = String::from_utf8_lossy(&run.stdout);
-    assert!(
-        run.status.success(),
-        "{}",
-        String::from_utf8_lossy(&run.stderr)
-    );
     assert!(stdout.contains("4 frames at 1 spp"), "{stdout}");
     for frames in [2, 4] {
         assert!(
@@ -463,7 +443,7 @@ fn snapshots_time_budgets_and_presets() {
     }
     assert!(!dir.join("p.f000003.png").exists());
 
-    let run = sylva(&[
+    let stdout = succeed(&[
         "render",
         "--width",
         "16",
@@ -476,12 +456,6 @@ fn snapshots_time_budgets_and_presets() {
         "--out",
         out.to_str().unwrap(),
     ]);
-    let stdout = String::from_utf8_lossy(&run.stdout);
-    assert!(
-        run.status.success(),
-        "{}",
-        String::from_utf8_lossy(&run.stderr)
-    );
     // How many frames fit depends on the machine; the budget only has to end the run.
     assert!(
         stdout.contains(" frames at 4 spp") && out.is_file(),
