@@ -37,8 +37,7 @@ fn rays(c: &mut Criterion) {
     let params = RenderParams {
         samples_per_pixel: 4,
         sky_samples: 2,
-        seed: 0,
-        tile_size: 16,
+        ..RenderParams::default()
     };
     group.bench_function("render_4spp_2_threads", |b| {
         b.iter(|| pool.install(|| render_frame(&scene, &bench.view, &params, 0, &|_| {})))

@@ -27,7 +27,8 @@ pub enum Lens {
 #[require(
     crate::components::Transform,
     crate::film::Film,
-    crate::film::FrameBuffer
+    crate::film::FrameBuffer,
+    crate::render::FramePlan
 )]
 pub struct Camera {
     /// Image width in pixels.

@@ -278,7 +278,10 @@ impl VirtualLights {
             regions[index] = a;
             regions.push(b);
         }
-        let lights: Vec<VirtualLight> = regions.iter().map(|r| region_light(map, r)).collect();
+        let mut lights: Vec<VirtualLight> = regions.iter().map(|r| region_light(map, r)).collect();
+        // Neighbours in the list are neighbours on the sphere, so a stratum of the CDF
+        // (an interleaved-sampling subset) is a compact patch of sky.
+        lights.sort_by_key(|l| hilbert_key(l.direction));
         Self::from_lights(lights)
     }
 
@@ -384,6 +387,37 @@ fn region_light(map: &EnvironmentMap, r: &Region) -> VirtualLight {
         irradiance: to_vec(irradiance),
         probability: 0.0,
     }
+}
+
+/// Position of direction `d` along a Hilbert curve over the octahedral map of the
+/// sphere: nearby keys are nearby directions.
+fn hilbert_key(d: Vec3) -> u64 {
+    let n = d / (d.x.abs() + d.y.abs() + d.z.abs()).max(f32::MIN_POSITIVE);
+    let (mut u, mut v) = (n.x, n.z);
+    if n.y < 0.0 {
+        (u, v) = (
+            (1.0 - n.z.abs()) * n.x.signum(),
+            (1.0 - n.x.abs()) * n.z.signum(),
+        );
+    }
+    const SIDE: u32 = 1 << 16;
+    let cell = |a: f32| (((a * 0.5 + 0.5) * SIDE as f32) as u32).min(SIDE - 1);
+    let (mut x, mut y) = (cell(u), cell(v));
+    let mut key = 0u64;
+    let mut s = SIDE / 2;
+    while s > 0 {
+        let (rx, ry) = (u32::from(x & s > 0), u32::from(y & s > 0));
+        key += u64::from(s) * u64::from(s) * u64::from((3 * rx) ^ ry);
+        if ry == 0 {
+            if rx == 1 {
+                x = SIDE - 1 - x;
+                y = SIDE - 1 - y;
+            }
+            std::mem::swap(&mut x, &mut y);
+        }
+        s /= 2;
+    }
+    key
 }
 
 /// The environment as the kernel uses it: the map for what camera rays see, and its

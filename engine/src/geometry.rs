@@ -9,7 +9,7 @@ use glam::Vec3A;
 use rayon::prelude::*;
 
 /// Index of a mesh in the [`GeometryLibrary`].
-#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, PartialOrd, Ord)]
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Hash, PartialOrd, Ord)]
 pub struct GeometryId(pub u32);
 
 /// A mesh and its BLAS, with the triangles' corners copied in BVH leaf order so a leaf

@@ -1,20 +1,27 @@
 //! The render kernel: a pure function of flat scene data, camera, parameters, tile and
 //! frame index. The schedule, benchmarks, tests and (later) MPI workers all call it.
 //!
-//! Shading in this slice: Lambertian surfaces lit by directional lights (one shadow ray
-//! each) and by the sky (cosine-weighted shadow rays). Hit filters run the alpha test in
-//! place during traversal, for camera and shadow rays alike.
+//! Shading: Lambertian surfaces lit by directional lights (one shadow ray each) and by
+//! the environment (virtual lights, optionally interleaved) or the gradient sky
+//! (cosine-weighted shadow rays). Hit filters run the alpha test in place during
+//! traversal, for camera and shadow rays alike; adaptive transparency turns holes beyond
+//! a camera's allowance into opaque hits.
 
 use crate::bvh::TraversalStats;
 use crate::camera::{Camera, CameraView};
 use crate::film::{FrameBuffer, Tile, TileResult};
 use crate::geometry::GeometryLibrary;
+use crate::interleave::LightSubsets;
 use crate::light::LightSet;
 use crate::math::{ErrorPoint, Ray};
 use crate::sampling::{SampleKey, cosine_hemisphere, orthonormal_basis};
 use crate::shading::{Shader, ShaderTable};
 use crate::tlas::{Candidate, Hit, TopLevel};
+use crate::transparency::{
+    COUNTED_HOLES, CandidateHoles, CountedHoles, TransparencyCurve, first_opaque_hole,
+};
 use crate::triangle::hit_point;
+use bevy_ecs::component::Component;
 use glam::{Vec2, Vec3, Vec3A};
 use rayon::prelude::*;
 
@@ -31,17 +38,31 @@ pub struct RenderScene<'a> {
     pub lights: &'a LightSet,
 }
 
+/// What the planning stages decided for a camera's frames: adaptive transparency (only
+/// when the scene has alpha masks) and light subsets (only when it has virtual lights).
+#[derive(Component, Clone, Copy, Debug, Default, PartialEq)]
+pub struct FramePlan {
+    /// The transparency curve in force, if any.
+    pub transparency: Option<TransparencyCurve>,
+    /// The light-subset assignment in force, if any.
+    pub light_subsets: Option<LightSubsets>,
+}
+
 /// Per-frame sampling settings.
-#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+#[derive(Clone, Copy, Debug, PartialEq)]
 pub struct RenderParams {
     /// Camera samples per pixel.
     pub samples_per_pixel: u32,
-    /// Sky shadow rays per camera hit.
+    /// Sky shadow rays (light samples) per camera hit.
     pub sky_samples: u32,
     /// Seed of every random number.
     pub seed: u64,
     /// Tile edge in pixels.
     pub tile_size: u32,
+    /// Adaptive transparency, off when `None`.
+    pub transparency: Option<TransparencyCurve>,
+    /// Interleaved light subsets, off when `None`.
+    pub light_subsets: Option<LightSubsets>,
 }
 
 impl Default for RenderParams {
@@ -51,6 +72,8 @@ impl Default for RenderParams {
             sky_samples: 2,
             seed: 0,
             tile_size: 16,
+            transparency: None,
+            light_subsets: None,
         }
     }
 }
@@ -65,6 +88,48 @@ impl RenderParams {
             ..Default::default()
         }
     }
+
+    /// These settings with a plan's transparency curve and light subsets.
+    pub fn with_plan(self, plan: &FramePlan) -> Self {
+        Self {
+            transparency: plan.transparency,
+            light_subsets: plan.light_subsets,
+            ..self
+        }
+    }
+}
+
+/// How one camera sample is shaded.
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
+pub struct SampleShading {
+    /// Light samples (sky shadow rays) per hit.
+    pub light_samples: u32,
+    /// Adaptive transparency, off when `None`.
+    pub transparency: Option<TransparencyCurve>,
+    /// The subset assignment and the subset this sample draws its lights from; all
+    /// lights when `None`.
+    pub light_subset: Option<(LightSubsets, u32)>,
+}
+
+impl SampleShading {
+    /// Exact shading with `light_samples` independent light samples per hit.
+    pub fn plain(light_samples: u32) -> Self {
+        Self {
+            light_samples,
+            ..Default::default()
+        }
+    }
+}
+
+/// What the hit filter made of a candidate.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+enum FilterOutcome {
+    /// A surface the ray stops at.
+    Opaque,
+    /// An alpha hole: a transparency segment.
+    Hole,
+    /// The back of a single-sided surface.
+    Culled,
 }
 
 /// A surface point reconstructed from a hit, in world space.
@@ -103,24 +168,29 @@ impl<'a> RenderScene<'a> {
         mesh.uvs[i0 as usize] * b.x + mesh.uvs[i1 as usize] * b.y + mesh.uvs[i2 as usize] * b.z
     }
 
-    /// The hit filter run inside traversal: false where the shader's alpha mask has a
-    /// hole, or where a single-sided surface is seen from behind.
+    /// The hit filter run inside traversal: a hole where the shader's alpha mask has
+    /// one, culled where a single-sided surface is seen from behind.
     #[inline]
-    fn passes_filter(
+    fn filter(
         &self,
         candidate: &Candidate,
         direction: Vec3A,
         stats: &mut TraversalStats,
-    ) -> bool {
+    ) -> FilterOutcome {
         let shader = self.shader_of(candidate);
         if !shader.needs_hit_filter() {
-            return true;
+            return FilterOutcome::Opaque;
         }
         stats.filter_tests += 1;
-        let passes = (shader.double_sided || self.is_front_side(candidate, direction))
-            && shader.is_opaque_at(self.uv_of(candidate));
-        stats.filter_rejections += u64::from(!passes);
-        passes
+        let outcome = if !(shader.double_sided || self.is_front_side(candidate, direction)) {
+            FilterOutcome::Culled
+        } else if shader.is_opaque_at(self.uv_of(candidate)) {
+            FilterOutcome::Opaque
+        } else {
+            FilterOutcome::Hole
+        };
+        stats.filter_rejections += u64::from(outcome != FilterOutcome::Opaque);
+        outcome
     }
 
     /// True when `direction` arrives at the candidate triangle's front: the side its
@@ -138,35 +208,127 @@ impl<'a> RenderScene<'a> {
     /// The closest hit along `ray` that the hit filter accepts.
     #[inline]
     pub fn closest(&self, ray: &Ray, stats: &mut TraversalStats) -> Option<Hit> {
+        self.closest_adaptive(ray, None, stats).map(|(hit, _)| hit)
+    }
+
+    /// The closest hit along `ray` (unit direction, so `t` is the camera distance) under
+    /// adaptive transparency: the first hole, nearest first, whose index `i` reaches the
+    /// curve's allowance at its distance is an opaque hit (flagged `true`). With
+    /// `curve = None` it is [`closest`](Self::closest).
+    pub fn closest_adaptive(
+        &self,
+        ray: &Ray,
+        curve: Option<&TransparencyCurve>,
+        stats: &mut TraversalStats,
+    ) -> Option<(Hit, bool)> {
         if !self.shaders.needs_hit_filter() {
             return self
                 .top_level
-                .intersect_closest(self.geometry, ray, stats, |_| true);
+                .intersect_closest(self.geometry, ray, stats, |_| true)
+                .map(|hit| (hit, false));
         }
         let mut filter = TraversalStats::default();
-        let hit = self
-            .top_level
-            .intersect_closest(self.geometry, ray, stats, |c| {
-                self.passes_filter(c, ray.direction, &mut filter)
-            });
+        let result = match curve {
+            None => {
+                let mut holes = CountedHoles::new(COUNTED_HOLES);
+                let hit =
+                    self.top_level
+                        .intersect_closest(self.geometry, ray, stats, |c| {
+                            match self.filter(c, ray.direction, &mut filter) {
+                                FilterOutcome::Opaque => true,
+                                FilterOutcome::Hole => {
+                                    holes.insert(c.t, ());
+                                    false
+                                }
+                                FilterOutcome::Culled => false,
+                            }
+                        });
+                let t_hit = hit.map_or(f32::INFINITY, |h| h.t);
+                filter.holes_passed = holes.count_before(t_hit) as u64;
+                hit.map(|hit| (hit, false))
+            }
+            Some(curve) => {
+                let mut holes = CandidateHoles::new(curve.max_allowance() as usize + 1);
+                let mut last_accepted_hole = false;
+                let hit = self
+                    .top_level
+                    .intersect_closest(self.geometry, ray, stats, |c| {
+                        let outcome = self.filter(c, ray.direction, &mut filter);
+                        let accept = match outcome {
+                            FilterOutcome::Opaque => true,
+                            FilterOutcome::Culled => false,
+                            FilterOutcome::Hole => {
+                                // Enough nearer holes seen already: this one is beyond the
+                                // allowance whatever else turns up, so it may end the
+                                // search early; the walk below picks the first such hole.
+                                let beyond =
+                                    holes.count_before(c.t) >= curve.allowance(c.t) as usize;
+                                holes.insert(c.t, *c);
+                                beyond
+                            }
+                        };
+                        // Each accepted candidate becomes the closest so far.
+                        if accept {
+                            last_accepted_hole = outcome == FilterOutcome::Hole;
+                        }
+                        accept
+                    });
+                let t_hit = hit.map_or(f32::INFINITY, |h| h.t);
+                let nearer = holes.sorted_before(t_hit);
+                if let Some(&(_, hole)) = first_opaque_hole(curve, nearer) {
+                    filter.holes_passed = nearer.iter().take_while(|h| h.0 < hole.t).count() as u64;
+                    filter.opaque_holes = 1;
+                    Some((hole, true))
+                } else {
+                    filter.holes_passed = nearer.len() as u64;
+                    filter.opaque_holes = u64::from(hit.is_some() && last_accepted_hole);
+                    hit.map(|hit| (hit, last_accepted_hole))
+                }
+            }
+        };
         filter.closest_filter_rejections = filter.filter_rejections;
         stats.add(&filter);
-        hit
+        result
     }
 
     /// True when a hit the filter accepts lies before `ray.t_max`.
     #[inline]
     pub fn occluded(&self, ray: &Ray, stats: &mut TraversalStats) -> bool {
+        self.occluded_within(ray, None, stats)
+    }
+
+    /// [`occluded`](Self::occluded) where a ray may pass at most `allowance` holes: one
+    /// more counts as opaque (adaptive transparency for shadow rays).
+    #[inline]
+    pub fn occluded_within(
+        &self,
+        ray: &Ray,
+        allowance: Option<u32>,
+        stats: &mut TraversalStats,
+    ) -> bool {
         if !self.shaders.needs_hit_filter() {
             return self
                 .top_level
                 .intersect_any(self.geometry, ray, stats, |_| true);
         }
         let mut filter = TraversalStats::default();
+        let mut holes = CountedHoles::new(allowance.map_or(0, |a| a as usize + 1));
         let hit = self
             .top_level
             .intersect_any(self.geometry, ray, stats, |c| {
-                self.passes_filter(c, ray.direction, &mut filter)
+                match self.filter(c, ray.direction, &mut filter) {
+                    FilterOutcome::Opaque => true,
+                    FilterOutcome::Culled => false,
+                    FilterOutcome::Hole => {
+                        let Some(allowance) = allowance else {
+                            return false;
+                        };
+                        holes.insert(c.t, ());
+                        let beyond = holes.len() > allowance as usize;
+                        filter.opaque_holes += u64::from(beyond);
+                        beyond
+                    }
+                }
             });
         stats.add(&filter);
         hit
@@ -210,12 +372,14 @@ impl<'a> RenderScene<'a> {
     }
 
     /// The shading cosine toward a directional light at `direction`, when the light is
-    /// above both normals and its shadow ray is unoccluded.
+    /// above both normals and its shadow ray (which may pass `allowance` holes) is
+    /// unoccluded.
     #[inline]
     fn lit_cosine(
         &self,
         surface: &SurfacePoint,
         direction: Vec3,
+        allowance: Option<u32>,
         stats: &mut TraversalStats,
     ) -> Option<f32> {
         let (ng, l) = (surface.geometric_normal, Vec3A::from(direction));
@@ -224,55 +388,72 @@ impl<'a> RenderScene<'a> {
             return None;
         }
         let shadow = Ray::new(surface.point.offset_origin(ng, l), l);
-        (!self.occluded(&shadow, stats)).then_some(cos)
+        (!self.occluded_within(&shadow, allowance, stats)).then_some(cos)
     }
 
-    /// Radiance arriving along `ray`: direct sun and sky (or environment: `sky_samples`
-    /// virtual lights picked by luminance) on Lambertian surfaces.
+    /// Radiance arriving along `ray`: direct sun and sky (or environment: light samples
+    /// from the virtual lights, picked by luminance within the sample's subset) on
+    /// Lambertian surfaces. A hole made opaque by adaptive transparency is shaded with its
+    /// shader's mean opaque colour × the curve's weight.
     pub fn radiance(
         &self,
         ray: &Ray,
         key: &SampleKey,
-        sky_samples: u32,
+        shading: &SampleShading,
         stats: &mut TraversalStats,
     ) -> Vec3A {
-        let Some(hit) = self.closest(ray, stats) else {
+        let curve = shading.transparency.as_ref();
+        let Some((hit, opaque_hole)) = self.closest_adaptive(ray, curve, stats) else {
             return self.lights.environment(ray.direction);
         };
         let surface = self.surface(&hit, ray.direction);
-        let albedo = Vec3A::from(self.shaders.get(surface.shader).albedo(surface.uv));
+        let shader = self.shaders.get(surface.shader);
+        let albedo = Vec3A::from(match (opaque_hole, curve) {
+            (true, Some(curve)) => shader.mean_opaque_color() * curve.weight,
+            _ => shader.albedo(surface.uv),
+        });
+        // Shadow rays get the allowance at their shading point's distance from the camera.
+        let allowance = curve.map(|c| c.allowance(hit.t));
         let (ng, ns) = (surface.geometric_normal, surface.shading_normal);
         let mut radiance = Vec3A::ZERO;
         for light in &self.lights.directional {
-            if let Some(cos) = self.lit_cosine(&surface, light.direction, stats) {
+            if let Some(cos) = self.lit_cosine(&surface, light.direction, allowance, stats) {
                 radiance +=
                     albedo * Vec3A::from(light.irradiance) * (cos * std::f32::consts::FRAC_1_PI);
             }
         }
+        let samples = shading.light_samples;
         if let Some(environment) = &self.lights.environment {
             // Unbiased for the discrete set: E[f(L)/p(L)] = Σ_i albedo/π · E_i · cos_i · V_i.
-            for k in 0..sky_samples {
-                let Some(light) = environment.lights.sample(key.get(SKY_DIMENSION + k)) else {
+            // With subsets the selection is stratified, each stratum equally likely over
+            // the render's random offset, so the expectation is the same.
+            for k in 0..samples {
+                let u = key.get(SKY_DIMENSION + k);
+                let u = match shading.light_subset {
+                    Some((subsets, subset)) => subsets.selection(subset, k, samples, u),
+                    None => u,
+                };
+                let Some(light) = environment.lights.sample(u) else {
                     continue;
                 };
-                if let Some(cos) = self.lit_cosine(&surface, light.direction, stats) {
-                    let weight = cos * std::f32::consts::FRAC_1_PI
-                        / (light.probability * sky_samples as f32);
+                if let Some(cos) = self.lit_cosine(&surface, light.direction, allowance, stats) {
+                    let weight =
+                        cos * std::f32::consts::FRAC_1_PI / (light.probability * samples as f32);
                     radiance += albedo * Vec3A::from(light.irradiance) * weight;
                 }
             }
         } else if let Some(sky) = &self.lights.sky {
             let (t, b) = orthonormal_basis(ns);
-            for k in 0..sky_samples {
+            for k in 0..samples {
                 let local = cosine_hemisphere(key.get2(SKY_DIMENSION + 2 * k));
                 let d = t * local.x + b * local.y + ns * local.z;
                 if ng.dot(d) <= 0.0 {
                     continue;
                 }
                 let shadow = Ray::new(surface.point.offset_origin(ng, d), d);
-                if !self.occluded(&shadow, stats) {
+                if !self.occluded_within(&shadow, allowance, stats) {
                     // Cosine sampling cancels the cos/π of the Lambertian BRDF.
-                    radiance += albedo * sky.radiance(d) / sky_samples as f32;
+                    radiance += albedo * sky.radiance(d) / samples as f32;
                 }
             }
         }
@@ -296,15 +477,22 @@ pub fn render_tile(
         rejected: 0,
         stats: TraversalStats::default(),
     };
+    let spp = params.samples_per_pixel;
+    let mut shading = SampleShading {
+        transparency: params.transparency,
+        ..SampleShading::plain(params.sky_samples)
+    };
     for y in tile.y..tile.y + tile.height {
         for x in tile.x..tile.x + tile.width {
             let (mut sum, mut count) = (Vec3::ZERO, 0u32);
-            for sample in 0..params.samples_per_pixel {
+            for sample in 0..spp {
                 let key = SampleKey::new(params.seed, x, y, frame, sample);
+                shading.light_subset = params
+                    .light_subsets
+                    .map(|subsets| (subsets, subsets.subset(x, y, frame, sample, spp)));
                 let film = Vec2::new(x as f32, y as f32) + key.get2(0);
                 let ray = view.ray(film, key.get2(2));
-                let radiance =
-                    Vec3::from(scene.radiance(&ray, &key, params.sky_samples, &mut result.stats));
+                let radiance = Vec3::from(scene.radiance(&ray, &key, &shading, &mut result.stats));
                 // The NaN firewall: a bad sample is counted and dropped, never averaged.
                 if radiance.is_finite() {
                     sum += radiance;

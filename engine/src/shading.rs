@@ -371,6 +371,7 @@ pub struct ShaderTable {
     shaders: Vec<Shader>,
     fallback: Shader,
     any_hit_filter: bool,
+    any_alpha_mask: bool,
 }
 
 impl Default for ShaderTable {
@@ -394,10 +395,12 @@ impl ShaderTable {
             table[index] = s;
         }
         let any_hit_filter = table.iter().any(Shader::needs_hit_filter);
+        let any_alpha_mask = table.iter().any(Shader::is_alpha_masked);
         Self {
             shaders: table,
             fallback,
             any_hit_filter,
+            any_alpha_mask,
         }
     }
 
@@ -411,6 +414,11 @@ impl ShaderTable {
     /// otherwise).
     pub fn needs_hit_filter(&self) -> bool {
         self.any_hit_filter
+    }
+
+    /// True when any shader cuts holes with an alpha mask.
+    pub fn has_alpha_masks(&self) -> bool {
+        self.any_alpha_mask
     }
 
     /// Number of slots.

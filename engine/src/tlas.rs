@@ -30,7 +30,7 @@ pub struct InstanceRecord {
 }
 
 /// A candidate hit offered to a hit filter during traversal.
-#[derive(Clone, Copy, Debug, PartialEq)]
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
 pub struct Candidate {
     /// TLAS slot of the instance (index into [`TopLevel::instances`]).
     pub slot: u32,

@@ -8,12 +8,14 @@ use glam::{Affine3A, Vec2, Vec3, Vec3A};
 use std::sync::Arc;
 use sylva_engine::bvh::{BuildParams, TraversalStats};
 use sylva_engine::geometry::{Geometry, GeometryLibrary};
-use sylva_engine::light::LightSet;
+use sylva_engine::light::{DirectionalLight, LightSet, SkyLight};
 use sylva_engine::math::Ray;
 use sylva_engine::mesh::TriangleMesh;
-use sylva_engine::render::RenderScene;
+use sylva_engine::render::{RenderScene, SampleShading};
+use sylva_engine::sampling::SampleKey;
 use sylva_engine::shading::{Shader, ShaderId, ShaderTable, Texture};
 use sylva_engine::tlas::{InstanceDesc, TopLevel};
+use sylva_engine::transparency::TransparencyCurve;
 
 /// A unit quad in the XY plane facing +Z (counter-clockwise seen from +Z), UV (0, 0) at
 /// its top-left corner (x = 0, y = 1).
@@ -99,14 +101,29 @@ fn stack(rng: &mut TestRng, layers: usize, holes: f32) -> Stack {
     }
 }
 
-/// The oracle: the first layer along a ray parallel to −Z whose texel is opaque.
-fn first_opaque_layer(stack: &Stack, xy: Vec2) -> Option<usize> {
+/// The layers a ray parallel to −Z meets, nearest first, each with whether its texel
+/// is opaque.
+fn layers_along(stack: &Stack, xy: Vec2) -> Vec<(usize, bool)> {
     let uv = Vec2::new(xy.x, 1.0 - xy.y);
     let mut order: Vec<usize> = (0..stack.depths.len()).collect();
     order.sort_by(|&a, &b| stack.depths[b].total_cmp(&stack.depths[a]));
     order
         .into_iter()
-        .find(|&i| stack.shaders.get(i as u32).is_opaque_at(uv))
+        .map(|i| (i, stack.shaders.get(i as u32).is_opaque_at(uv)))
+        .collect()
+}
+
+/// The oracle: the first layer along a ray parallel to −Z whose texel is opaque.
+fn first_opaque_layer(stack: &Stack, xy: Vec2) -> Option<usize> {
+    layers_along(stack, xy)
+        .into_iter()
+        .find_map(|(i, opaque)| opaque.then_some(i))
+}
+
+/// A ray down −Z from z = 1 through texel `(x, y)` of the 8×8 masks.
+fn texel_ray(x: u64, y: u64) -> (Vec2, Ray) {
+    let xy = Vec2::new((x as f32 + 0.5) / 8.0, (y as f32 + 0.5) / 8.0);
+    (xy, Ray::new(Vec3A::new(xy.x, xy.y, 1.0), -Vec3A::Z))
 }
 
 #[test]
@@ -115,18 +132,18 @@ fn closest_and_any_hit_skip_holes_exactly_where_the_oracle_does() {
     let stack = stack(&mut rng, 6, 0.6);
     let scene = stack.scene();
     let mut stats = TraversalStats::default();
-    let (mut hits, mut misses) = (0, 0);
+    let (mut hits, mut misses, mut holes_passed) = (0, 0, 0);
     for _ in 0..4000 {
         // Texel centres only: the bilinear filter then reads exactly one texel.
-        let xy = Vec2::new(
-            ((rng.next_u64() % 8) as f32 + 0.5) / 8.0,
-            ((rng.next_u64() % 8) as f32 + 0.5) / 8.0,
-        );
-        let ray = Ray::new(Vec3A::new(xy.x, xy.y, 1.0), -Vec3A::Z);
+        let (xy, ray) = texel_ray(rng.next_u64() % 8, rng.next_u64() % 8);
         let expected = first_opaque_layer(&stack, xy);
         let got = scene.closest(&ray, &mut stats).map(|h| h.instance as usize);
         assert_eq!(got, expected, "ray through {xy}");
         assert_eq!(scene.occluded(&ray, &mut stats), expected.is_some());
+        holes_passed += layers_along(&stack, xy)
+            .iter()
+            .take_while(|(_, opaque)| !opaque)
+            .count() as u64;
         match expected {
             Some(_) => hits += 1,
             None => misses += 1,
@@ -135,7 +152,128 @@ fn closest_and_any_hit_skip_holes_exactly_where_the_oracle_does() {
     assert!(hits > 500 && misses > 20, "{hits} hits, {misses} misses");
     assert!(stats.filter_rejections > 0);
     assert!(stats.closest_filter_rejections <= stats.filter_rejections);
+    assert_eq!(
+        stats.holes_passed, holes_passed,
+        "segments in front of the hits"
+    );
     assert!(stats.segments_per_closest_ray() > 0.5);
+    assert!(stats.hole_tests_per_closest_ray() >= stats.segments_per_closest_ray());
+}
+
+/// A curve whose near and far distances fall inside the stacks (layers at 1.0–2.3).
+fn stack_curve() -> TransparencyCurve {
+    TransparencyCurve {
+        near: 1.3,
+        far: 2.0,
+        depth_near: 4,
+        depth_far: 1,
+        weight: 0.75,
+    }
+}
+
+/// Adaptive transparency against an oracle that walks the layers nearest first: the
+/// i-th hole at distance t is opaque when i ≥ allowance(t); a shadow ray is blocked by
+/// an opaque layer or by more holes than its allowance.
+#[test]
+fn adaptive_transparency_turns_exactly_the_oracles_holes_opaque() {
+    let curve = stack_curve();
+    let mut stats = TraversalStats::default();
+    let (mut made_opaque, mut total_holes_passed) = (0, 0);
+    for seed in 0..6 {
+        let mut rng = TestRng::new(seed);
+        let stack = stack(&mut rng, 14, 0.85);
+        let scene = stack.scene();
+        for y in 0..8 {
+            for x in 0..8 {
+                let (xy, ray) = texel_ray(x, y);
+                let layers = layers_along(&stack, xy);
+                let mut expected = None;
+                for (index, &(layer, opaque)) in layers.iter().enumerate() {
+                    let t = 1.0 - stack.depths[layer];
+                    if opaque {
+                        expected = Some((layer, false));
+                        break;
+                    }
+                    if index as u32 >= curve.allowance(t) {
+                        expected = Some((layer, true));
+                        break;
+                    }
+                }
+                let before = stats.holes_passed;
+                let got = scene
+                    .closest_adaptive(&ray, Some(&curve), &mut stats)
+                    .map(|(hit, opaque_hole)| (hit.instance as usize, opaque_hole));
+                assert_eq!(got, expected, "ray through {xy}");
+                let passed = layers
+                    .iter()
+                    .take_while(|(layer, _)| expected.is_none_or(|e| e.0 != *layer))
+                    .count() as u64;
+                assert_eq!(stats.holes_passed - before, passed, "ray through {xy}");
+                made_opaque += usize::from(expected.is_some_and(|e| e.1));
+                total_holes_passed += passed;
+
+                let holes = layers.iter().filter(|(_, opaque)| !opaque).count() as u32;
+                let any_opaque = layers.iter().any(|(_, opaque)| *opaque);
+                for allowance in [0, 1, 3, 20] {
+                    assert_eq!(
+                        scene.occluded_within(&ray, Some(allowance), &mut stats),
+                        any_opaque || holes > allowance,
+                        "shadow ray through {xy}, allowance {allowance}"
+                    );
+                }
+            }
+        }
+    }
+    assert!(made_opaque > 50, "{made_opaque} holes made opaque");
+    assert!(
+        total_holes_passed > 300,
+        "{total_holes_passed} holes passed"
+    );
+}
+
+/// Pixels whose exact hit is nearer than the curve's `near`, and whose shadow rays pass
+/// fewer holes than its near allowance, shade bit for bit as without it; farther ones
+/// change.
+#[test]
+fn adaptive_transparency_leaves_near_geometry_exactly_unchanged() {
+    let mut rng = TestRng::new(12);
+    let mut stack = stack(&mut rng, 14, 0.7);
+    stack.lights = LightSet {
+        directional: vec![DirectionalLight {
+            direction: Vec3::new(0.2, 0.3, 1.0).normalize(),
+            irradiance: Vec3::splat(3.0),
+        }],
+        sky: Some(SkyLight::constant(Vec3::new(0.3, 0.4, 0.6))),
+        environment: None,
+    };
+    let scene = stack.scene();
+    let curve = stack_curve();
+    let exact = SampleShading::plain(4);
+    let adaptive = SampleShading {
+        transparency: Some(curve),
+        ..exact
+    };
+    let (mut near, mut far_changed) = (0, 0);
+    for i in 0..2000u32 {
+        let xy = Vec2::new(rng.range(0.02, 0.98), rng.range(0.02, 0.98));
+        let ray = Ray::new(Vec3A::new(xy.x, xy.y, 1.0), -Vec3A::Z);
+        let key = SampleKey::new(1, i, 0, 0, 0);
+        let mut stats = TraversalStats::default();
+        let a = scene.radiance(&ray, &key, &exact, &mut stats);
+        let b = scene.radiance(&ray, &key, &adaptive, &mut stats);
+        match scene.closest(&ray, &mut stats) {
+            Some(hit) if hit.t < curve.near => {
+                assert_eq!(
+                    a.to_array().map(f32::to_bits),
+                    b.to_array().map(f32::to_bits)
+                );
+                near += 1;
+            }
+            _ => far_changed += usize::from(a != b),
+        }
+    }
+    assert!(near > 500, "{near} near pixels");
+    assert!(far_changed > 100, "{far_changed} far pixels changed");
 }
 
 #[test]

@@ -9,9 +9,10 @@ use std::sync::Arc;
 use sylva_engine::bvh::TraversalStats;
 use sylva_engine::environment::{EnvironmentLight, EnvironmentMap, luminance};
 use sylva_engine::geometry::GeometryLibrary;
+use sylva_engine::interleave::LightSubsets;
 use sylva_engine::light::LightSet;
 use sylva_engine::math::Ray;
-use sylva_engine::render::RenderScene;
+use sylva_engine::render::{RenderScene, SampleShading};
 use sylva_engine::sampling::SampleKey;
 use sylva_engine::shading::{Shader, ShaderId, ShaderTable};
 use sylva_engine::tlas::TopLevel;
@@ -36,11 +37,23 @@ fn test_map(sun: f32) -> EnvironmentMap {
 
 /// Mean and standard error per channel of `radiance` over `n` independent keys.
 fn estimate(scene: &RenderScene, ray: &Ray, light_samples: u32, n: u32) -> (Vec3, Vec3, f32) {
+    estimate_with(scene, ray, n, 5, |_| SampleShading::plain(light_samples))
+}
+
+/// Mean and standard error per channel of `radiance` over frames `0..n` of pixel (0, 0)
+/// with seed `seed`, frame `k` shaded by `shading(k)`.
+fn estimate_with(
+    scene: &RenderScene,
+    ray: &Ray,
+    n: u32,
+    seed: u64,
+    shading: impl Fn(u32) -> SampleShading,
+) -> (Vec3, Vec3, f32) {
     let (mut sum, mut sum_sq, mut max_luminance) = (Vec3::ZERO, Vec3::ZERO, 0f32);
     let mut stats = TraversalStats::default();
     for k in 0..n {
-        let key = SampleKey::new(5, 0, 0, k, 0);
-        let v = Vec3::from(scene.radiance(ray, &key, light_samples, &mut stats));
+        let key = SampleKey::new(seed, 0, 0, k, 0);
+        let v = Vec3::from(scene.radiance(ray, &key, &shading(k), &mut stats));
         assert!(v.is_finite());
         sum += v;
         sum_sq += v * v;
@@ -86,41 +99,89 @@ impl Plane {
     }
 }
 
-#[test]
-fn a_lambertian_plane_converges_to_the_sum_over_the_virtual_lights() {
-    let plane = Plane::new();
-    let environment = Arc::new(EnvironmentLight::new(test_map(30.0), 64));
-    // The analytic answer for the discrete set: Σ albedo/π · E_i · max(cos, 0).
-    let expected: Vec3 = environment
+/// The analytic answer for the discrete set on the upward plane:
+/// Σ albedo/π · E_i · max(cos, 0).
+fn discrete_sum(environment: &EnvironmentLight) -> Vec3 {
+    environment
         .lights
         .lights()
         .iter()
         .map(|l| ALBEDO * l.irradiance * l.direction.y.max(0.0) / std::f32::consts::PI)
-        .sum();
-    let lights = LightSet {
-        environment: Some(environment),
-        ..Default::default()
-    };
-    let scene = RenderScene {
-        geometry: &plane.library,
-        top_level: &plane.top_level,
-        shaders: &plane.shaders,
-        lights: &lights,
-    };
+        .sum()
+}
+
+#[test]
+fn a_lambertian_plane_converges_to_the_sum_over_the_virtual_lights() {
+    let plane = Plane::new();
+    let environment = Arc::new(EnvironmentLight::new(test_map(30.0), 64));
+    let expected = discrete_sum(&environment);
     let ray = Ray::new(
         Vec3A::new(0.3, 2.0, 0.1),
         Vec3A::new(0.1, -1.0, 0.2).normalize(),
     );
-    for light_samples in [1, 4] {
-        let (mean, standard_error, _) = estimate(&scene, &ray, light_samples, 40_000);
-        for c in 0..3 {
+    plane.lit_by(environment, |scene| {
+        for light_samples in [1, 4] {
+            let (mean, standard_error, _) = estimate(scene, &ray, light_samples, 40_000);
+            for c in 0..3 {
+                assert!(
+                    (mean[c] - expected[c]).abs() < 3.0 * standard_error[c],
+                    "{light_samples} samples: {mean} vs {expected} (standard error {standard_error})"
+                );
+            }
+            assert!(standard_error.max_element() < 0.05 * expected.min_element());
+        }
+    });
+}
+
+/// Interleaved light subsets: over the render's random rotation the estimator keeps the
+/// discrete sum as its mean, and stratifying light selection across frames lowers the
+/// variance of a pixel's progressive mean against independent selection.
+#[test]
+fn interleaved_subsets_are_unbiased_and_beat_independent_selection() {
+    let plane = Plane::new();
+    let environment = Arc::new(EnvironmentLight::new(test_map(30.0), 64));
+    let expected = discrete_sum(&environment);
+    let ray = Ray::new(Vec3A::new(0.3, 2.0, 0.1), -Vec3A::Y);
+    let (runs, frames) = (300u32, 32u32);
+    plane.lit_by(environment, |scene| {
+        for light_samples in [1, 2] {
+            let mut means = [Vec::new(), Vec::new()];
+            for run in 0..runs {
+                let subsets = LightSubsets {
+                    pattern: 4,
+                    count: 16,
+                    offset: run % 16,
+                };
+                let seed = u64::from(run) + 100;
+                let interleaved = estimate_with(scene, &ray, frames, seed, |k| SampleShading {
+                    light_subset: Some((subsets, subsets.subset(0, 0, k, 0, 1))),
+                    ..SampleShading::plain(light_samples)
+                });
+                let independent = estimate_with(scene, &ray, frames, seed, |_| {
+                    SampleShading::plain(light_samples)
+                });
+                means[0].push(luminance(interleaved.0));
+                means[1].push(luminance(independent.0));
+            }
+            let truth = luminance(expected);
+            let [(m_int, v_int), (m_ind, v_ind)] = means.map(|m| {
+                let mean = m.iter().sum::<f32>() / m.len() as f32;
+                let var = m.iter().map(|x| (x - mean).powi(2)).sum::<f32>() / (m.len() - 1) as f32;
+                (mean, var)
+            });
+            for (mean, var) in [(m_int, v_int), (m_ind, v_ind)] {
+                let standard_error = (var / runs as f32).sqrt();
+                assert!(
+                    (mean - truth).abs() < 3.0 * standard_error,
+                    "{light_samples} samples: {mean} vs {truth} (standard error {standard_error})"
+                );
+            }
             assert!(
-                (mean[c] - expected[c]).abs() < 3.0 * standard_error[c],
-                "{light_samples} samples: {mean} vs {expected} (standard error {standard_error})"
+                v_int < 0.5 * v_ind,
+                "{light_samples} samples: interleaved variance {v_int} vs independent {v_ind}"
             );
         }
-        assert!(standard_error.max_element() < 0.05 * expected.min_element());
-    }
+    });
 }
 
 #[test]

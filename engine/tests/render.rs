@@ -7,7 +7,7 @@ use glam::{Affine3A, Quat, Vec2, Vec3};
 use std::sync::Arc;
 use sylva_engine::bvh::BuildParams;
 use sylva_engine::camera::{Camera, CameraView};
-use sylva_engine::film::{FrameBuffer, Tile};
+use sylva_engine::film::{Film, FrameBuffer, Tile};
 use sylva_engine::geometry::{Geometry, GeometryLibrary};
 use sylva_engine::light::{DirectionalLight, LightSet, SkyLight};
 use sylva_engine::mesh::TriangleMesh;
@@ -100,6 +100,12 @@ fn fixture() -> Fixture {
     }
 }
 
+/// The view of `camera` from `eye`, looking at the origin.
+fn view_from(camera: &Camera, eye: Vec3) -> CameraView {
+    let transform = sylva_engine::components::Transform::looking_at(eye, Vec3::ZERO, Vec3::Y);
+    CameraView::new(camera, &transform.to_affine())
+}
+
 #[test]
 fn tile_order_and_thread_count_do_not_change_a_bit() {
     let f = fixture();
@@ -116,15 +122,7 @@ fn tile_order_and_thread_count_do_not_change_a_bit() {
         sky_samples: 2,
         ..Default::default()
     };
-    let view = CameraView::new(
-        &camera,
-        &sylva_engine::components::Transform::looking_at(
-            Vec3::new(0.0, 3.0, 8.0),
-            Vec3::ZERO,
-            Vec3::Y,
-        )
-        .to_affine(),
-    );
+    let view = view_from(&camera, Vec3::new(0.0, 3.0, 8.0));
     let params = RenderParams {
         tile_size: 8,
         ..RenderParams::for_camera(&camera, 99)
@@ -181,15 +179,7 @@ fn lambertian_plane_under_sun_matches_the_analytic_radiance() {
         vertical_fov: 0.5,
         ..Default::default()
     };
-    let view = CameraView::new(
-        &camera,
-        &sylva_engine::components::Transform::looking_at(
-            Vec3::new(0.0, 5.0, 5.0),
-            Vec3::ZERO,
-            Vec3::Y,
-        )
-        .to_affine(),
-    );
+    let view = view_from(&camera, Vec3::new(0.0, 5.0, 5.0));
     let frame = render_frame(
         &scene,
         &view,
@@ -205,4 +195,42 @@ fn lambertian_plane_under_sun_matches_the_analytic_radiance() {
             "{p} vs {expected}"
         );
     }
+}
+
+/// The NaN firewall: samples made NaN by a shader with a NaN colour are counted and
+/// dropped in the tile, so neither the frame nor the film ever holds a NaN.
+#[test]
+fn injected_nan_samples_are_counted_and_never_reach_the_film() {
+    let mut f = fixture();
+    f.shaders = ShaderTable::new(vec![
+        f.shaders.get(0).clone(),
+        f.shaders.get(1).clone(),
+        Shader::color(ShaderId(2), Vec3::new(f32::NAN, 0.3, 0.1)),
+    ]);
+    let scene = RenderScene {
+        geometry: &f.library,
+        top_level: &f.top_level,
+        shaders: &f.shaders,
+        lights: &f.lights,
+    };
+    let camera = Camera {
+        width: 64,
+        height: 48,
+        samples_per_pixel: 3,
+        ..Default::default()
+    };
+    let view = view_from(&camera, Vec3::new(0.0, 3.0, 8.0));
+    let params = RenderParams::for_camera(&camera, 7);
+    let mut film = Film::new(64, 48);
+    for frame_index in 0..2 {
+        let frame = render_frame(&scene, &view, &params, frame_index, &|_| {});
+        let dropped: u64 = frame.counts.iter().map(|&c| u64::from(3 - c)).sum();
+        assert_eq!(frame.rejected, dropped);
+        assert!(frame.rejected > 50, "{} samples rejected", frame.rejected);
+        assert!(frame.sums.iter().all(|s| s.is_finite()));
+        film.accumulate(&frame);
+    }
+    assert!(film.rejected_samples() > 100);
+    assert!(film.mean_rgb().iter().flatten().all(|v| v.is_finite()));
+    assert!(film.to_srgba8(0.0).len() == 64 * 48 * 4);
 }

@@ -24,6 +24,11 @@ pub struct TraversalStats {
     pub filter_rejections: u64,
     /// The part of `filter_rejections` met by closest-hit (camera) rays.
     pub closest_filter_rejections: u64,
+    /// Alpha holes in front of the hit that closest-hit (camera) rays returned: the
+    /// transparency segments they passed (at most 64 counted per ray).
+    pub holes_passed: u64,
+    /// Holes adaptive transparency turned opaque (camera and shadow rays).
+    pub opaque_holes: u64,
 }
 
 impl TraversalStats {
@@ -36,11 +41,19 @@ impl TraversalStats {
         self.filter_tests += other.filter_tests;
         self.filter_rejections += other.filter_rejections;
         self.closest_filter_rejections += other.closest_filter_rejections;
+        self.holes_passed += other.holes_passed;
+        self.opaque_holes += other.opaque_holes;
     }
 
-    /// Mean transparency segments (alpha holes passed) per closest-hit ray.
-    pub fn segments_per_closest_ray(&self) -> f64 {
+    /// Mean alpha tests that found a hole per closest-hit ray: the transparency work,
+    /// including holes behind the final hit that were tested before it was found.
+    pub fn hole_tests_per_closest_ray(&self) -> f64 {
         self.closest_filter_rejections as f64 / self.closest_rays.max(1) as f64
+    }
+
+    /// Mean transparency segments per closest-hit ray: holes in front of the hit.
+    pub fn segments_per_closest_ray(&self) -> f64 {
+        self.holes_passed as f64 / self.closest_rays.max(1) as f64
     }
 
     /// All rays traced.

@@ -1,0 +1,197 @@
+//! Interleaved sampling of the virtual lights (Keller & Heidrich 2001; Dietrich et al.
+//! §4.3). The light set is split into `S` subsets: subset `s` is the stratum
+//! `[s/S, (s+1)/S)` of the luminance CDF, so every subset carries the same share of the
+//! power and a light brighter than `1/S` of it (a sun) belongs to several. Pixels of an
+//! `n × n` tile of the image take different subsets, and the assignment rotates with each
+//! sample of each frame, so over `S` consecutive samples every pixel has drawn from every
+//! subset exactly once: light selection is stratified across frames instead of drawn
+//! independently. A random offset per render keeps the estimator unbiased.
+
+use bevy_ecs::component::Component;
+
+/// A camera's interleaved-sampling setting: an `pattern × pattern` tile of pixels and
+/// the number of light subsets (`pattern = 1` turns it off).
+#[derive(Component, Clone, Copy, Debug, PartialEq, Eq)]
+pub struct LightInterleave {
+    /// Edge of the pixel tile.
+    pub pattern: u32,
+    /// Number of subsets; 0 means `pattern²`.
+    pub subsets: u32,
+}
+
+impl Default for LightInterleave {
+    fn default() -> Self {
+        Self {
+            pattern: 4,
+            subsets: 0,
+        }
+    }
+}
+
+impl LightInterleave {
+    /// Subsets in use: `subsets`, or `pattern²` when it is 0.
+    pub fn subset_count(&self) -> u32 {
+        if self.subsets == 0 {
+            self.pattern.saturating_mul(self.pattern)
+        } else {
+            self.subsets
+        }
+    }
+
+    /// True when it changes sampling at all (more than one subset).
+    pub fn is_active(&self) -> bool {
+        self.pattern >= 1 && self.subset_count() > 1
+    }
+}
+
+/// The assignment the `assign_light_subsets` stage hands the kernel.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct LightSubsets {
+    /// Edge of the pixel tile (≥ 1).
+    pub pattern: u32,
+    /// Number of subsets (≥ 1).
+    pub count: u32,
+    /// Random rotation of the whole assignment, drawn once per render.
+    pub offset: u32,
+}
+
+/// The largest `f32` below 1.
+const ONE_MINUS_EPSILON: f32 = 1.0 - f32::EPSILON / 2.0;
+
+impl LightSubsets {
+    /// The subset of sample `sample` (of `samples_per_pixel`) of pixel `(x, y)` in frame
+    /// `frame`: the pixel's place in its tile plus the step's position in a permutation of
+    /// the subsets that spreads early steps apart (bit reversal for a power-of-two count,
+    /// a golden-ratio stride otherwise), so a pixel's first few samples already come from
+    /// distant strata rather than neighbouring ones.
+    #[inline]
+    pub fn subset(&self, x: u32, y: u32, frame: u32, sample: u32, samples_per_pixel: u32) -> u32 {
+        let n = self.pattern.max(1);
+        let count = u64::from(self.count.max(1));
+        let place = u64::from((y % n) * n + x % n);
+        let step = u64::from(frame) * u64::from(samples_per_pixel) + u64::from(sample);
+        let spread = spread_step(step % count, count);
+        ((place + spread + u64::from(self.offset)) % count) as u32
+    }
+
+    /// The CDF position of light sample `j` of `k` in subset `subset`, given a uniform
+    /// `u`: the `k` samples are stratified within the subset's stratum.
+    #[inline]
+    pub fn selection(&self, subset: u32, j: u32, k: u32, u: f32) -> f32 {
+        let within = (j as f32 + u) / k.max(1) as f32;
+        ((subset as f32 + within) / self.count.max(1) as f32).min(ONE_MINUS_EPSILON)
+    }
+}
+
+/// A permutation of `0..count` evaluated at `step`: bit reversal when `count` is a power
+/// of two, otherwise a stride near `count / φ` that is coprime with `count`.
+#[inline]
+fn spread_step(step: u64, count: u64) -> u64 {
+    if count.is_power_of_two() {
+        let bits = count.trailing_zeros();
+        return if bits == 0 {
+            0
+        } else {
+            step.reverse_bits() >> (64 - bits)
+        };
+    }
+    let mut stride = ((count as f64) * 0.618_033_988_749_895).round().max(1.0) as u64;
+    while gcd(stride, count) != 1 {
+        stride += 1;
+    }
+    step * stride % count
+}
+
+fn gcd(mut a: u64, mut b: u64) -> u64 {
+    while b != 0 {
+        (a, b) = (b, a % b);
+    }
+    a
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn every_pixel_sees_every_subset_once_per_cycle() {
+        for (pattern, count) in [(1, 7), (3, 9), (4, 16), (4, 5), (2, 12)] {
+            let subsets = LightSubsets {
+                pattern,
+                count,
+                offset: 11,
+            };
+            for spp in [1, 4] {
+                for (x, y) in [(0, 0), (5, 3), (639, 479)] {
+                    let mut seen = vec![0; count as usize];
+                    for step in 0..count {
+                        let (frame, sample) = (step / spp, step % spp);
+                        let frame = frame + 3;
+                        seen[subsets.subset(x, y, frame, sample, spp) as usize] += 1;
+                    }
+                    assert!(seen.iter().all(|&c| c == 1), "{pattern} {count} {seen:?}");
+                }
+            }
+        }
+    }
+
+    #[test]
+    fn early_steps_of_a_pixel_are_spread_over_the_strata() {
+        let subsets = LightSubsets {
+            pattern: 4,
+            count: 16,
+            offset: 0,
+        };
+        let first: Vec<u32> = (0..4).map(|f| subsets.subset(0, 0, f, 0, 1)).collect();
+        assert_eq!(first, [0, 8, 4, 12]);
+        for count in [3, 10, 25, 100] {
+            let seen: std::collections::BTreeSet<u64> =
+                (0..count).map(|s| spread_step(s, count)).collect();
+            assert_eq!(seen.len() as u64, count, "a permutation of 0..{count}");
+        }
+    }
+
+    #[test]
+    fn a_tile_of_pixels_covers_distinct_subsets_in_one_frame() {
+        for (pattern, count) in [(3, 9), (4, 16), (4, 8), (2, 3)] {
+            let subsets = LightSubsets {
+                pattern,
+                count,
+                offset: 5,
+            };
+            for (x0, y0) in [(0, 0), (4, 8), (12, 20)] {
+                let mut seen = std::collections::BTreeSet::new();
+                for y in y0..y0 + pattern {
+                    for x in x0..x0 + pattern {
+                        seen.insert(subsets.subset(x, y, 2, 0, 1));
+                    }
+                }
+                assert_eq!(seen.len() as u32, count.min(pattern * pattern));
+            }
+        }
+    }
+
+    #[test]
+    fn selections_stratify_the_unit_interval() {
+        let subsets = LightSubsets {
+            pattern: 2,
+            count: 4,
+            offset: 0,
+        };
+        let mut all: Vec<f32> = (0..4)
+            .flat_map(|s| (0..2).map(move |j| subsets.selection(s, j, 2, 0.5)))
+            .collect();
+        all.sort_by(f32::total_cmp);
+        let expected: Vec<f32> = (0..8).map(|i| (i as f32 + 0.5) / 8.0).collect();
+        assert_eq!(all, expected);
+        assert!(subsets.selection(3, 1, 2, 0.999_999_9) < 1.0);
+        assert_eq!(LightInterleave::default().subset_count(), 16);
+        assert!(
+            !LightInterleave {
+                pattern: 1,
+                subsets: 0
+            }
+            .is_active()
+        );
+    }
+}
