@@ -7,9 +7,12 @@
 //! 1. `Animate` — reserved for wind sway (nothing runs there yet);
 //! 2. `Prepare` — [`rebuild_top_level`], [`compile_shaders`], [`compile_lights`], side by
 //!    side on the multi-threaded executor;
-//! 3. `Render` — [`render_tiles`], tiles in parallel on the one [`RenderPool`];
-//! 4. `Accumulate` — [`accumulate`] into each camera's `Film`;
-//! 5. `Output` — [`output`] writes requested images.
+//! 3. `Plan` — per camera: [`adaptive_transparency_lod`] (only when the scene has
+//!    alpha-masked shaders) and [`assign_light_subsets`] (only when it has virtual
+//!    lights), run when their inputs change;
+//! 4. `Render` — [`render_tiles`], tiles in parallel on the one [`RenderPool`];
+//! 5. `Accumulate` — [`accumulate`] into each camera's `Film`;
+//! 6. `Output` — [`output`] writes requested images.
 //!
 //! Threads: all data-parallel work (tiles, BVH builds) runs on the rayon [`RenderPool`];
 //! bevy's task pool only runs the systems themselves, whose threads block while the pool
@@ -38,6 +41,8 @@ pub enum RenderSystems {
     Animate,
     /// Acceleration structures, shaders and lights are brought up to date.
     Prepare,
+    /// Each camera's frame plan: transparency curve and light subsets.
+    Plan,
     /// Each camera renders a frame.
     Render,
     /// Frames are added to films.
@@ -166,6 +171,7 @@ pub fn frame_schedule() -> Schedule {
         (
             RenderSystems::Animate,
             RenderSystems::Prepare,
+            RenderSystems::Plan,
             RenderSystems::Render,
             RenderSystems::Accumulate,
             RenderSystems::Output,
@@ -182,6 +188,12 @@ pub fn frame_schedule() -> Schedule {
         compile_lights
             .run_if(lights_changed)
             .in_set(RenderSystems::Prepare),
+        (
+            adaptive_transparency_lod.run_if(transparency_inputs_changed),
+            assign_light_subsets.run_if(light_subset_inputs_changed),
+        )
+            .chain()
+            .in_set(RenderSystems::Plan),
         render_tiles
             .run_if(any_with_component::<sylva_engine::camera::Camera>)
             .in_set(RenderSystems::Render),

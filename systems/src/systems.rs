@@ -11,15 +11,30 @@ use sylva_engine::components::{Hidden, Instance, Transform};
 use sylva_engine::environment::EnvironmentLight;
 use sylva_engine::film::{Film, FrameBuffer, Tile};
 use sylva_engine::geometry::GeometryLibrary;
+use sylva_engine::interleave::{LightInterleave, LightSubsets};
 use sylva_engine::light::{DirectionalLight, LightSet, SkyLight};
-use sylva_engine::render::{RenderParams, RenderScene, render_frame};
+use sylva_engine::render::{FramePlan, RenderParams, RenderScene, render_frame};
+use sylva_engine::sampling::mix64;
 use sylva_engine::shading::{Shader, ShaderTable};
 use sylva_engine::tlas::{InstanceDesc, TopLevel};
+use sylva_engine::transparency::TransparencyCurve;
 
 /// Plants whose placement, geometry or visibility changed since a system last ran.
 type ChangedPlants = (
     With<Instance>,
     Or<(Changed<Transform>, Changed<Instance>, Added<Hidden>)>,
+);
+
+/// Cameras whose setting of type `S` changed, or which were just given a frame plan.
+type NewPlanInput<S> = Or<(Changed<S>, Added<FramePlan>)>;
+
+/// What `render_tiles` reads and writes per camera.
+type RenderedCamera<'a> = (
+    Ref<'a, Camera>,
+    Ref<'a, Transform>,
+    Ref<'a, FramePlan>,
+    &'a Film,
+    &'a mut FrameBuffer,
 );
 
 /// Run condition of [`rebuild_top_level`]: a plant was added, moved, re-pointed, hidden,
@@ -151,6 +166,74 @@ pub fn compile_lights(
     };
 }
 
+/// Run condition of [`adaptive_transparency_lod`]: the shaders or a camera's curve
+/// changed.
+pub fn transparency_inputs_changed(
+    shaders: Res<ShaderTable>,
+    cameras: Query<(), NewPlanInput<TransparencyCurve>>,
+    mut removed: RemovedComponents<TransparencyCurve>,
+) -> bool {
+    removed.read().count() > 0 || shaders.is_changed() || !cameras.is_empty()
+}
+
+/// Puts each camera's [`TransparencyCurve`] into its [`FramePlan`] when the scene has
+/// alpha-masked shaders; otherwise the plan has none and rays keep no hole lists.
+pub fn adaptive_transparency_lod(
+    shaders: Res<ShaderTable>,
+    mut cameras: Query<(Option<&TransparencyCurve>, &mut FramePlan)>,
+) {
+    let _span = tracing::info_span!("adaptive_transparency_lod").entered();
+    for (curve, mut plan) in &mut cameras {
+        let transparency = curve.copied().filter(|_| shaders.has_alpha_masks());
+        plan.set_if_neq(FramePlan {
+            transparency,
+            ..*plan
+        });
+    }
+}
+
+/// Run condition of [`assign_light_subsets`]: the lights, the seed or a camera's
+/// interleave setting changed.
+pub fn light_subset_inputs_changed(
+    lights: Res<LightSet>,
+    seed: Res<RenderSeed>,
+    cameras: Query<(), NewPlanInput<LightInterleave>>,
+    mut removed: RemovedComponents<LightInterleave>,
+) -> bool {
+    removed.read().count() > 0 || lights.is_changed() || seed.is_changed() || !cameras.is_empty()
+}
+
+/// Gives each camera with an active [`LightInterleave`] its [`LightSubsets`] when the
+/// scene is lit by virtual lights: its pattern, subset count and a random rotation drawn
+/// from the seed (over which the estimator is unbiased).
+pub fn assign_light_subsets(
+    lights: Res<LightSet>,
+    seed: Res<RenderSeed>,
+    mut cameras: Query<(Option<&LightInterleave>, &mut FramePlan)>,
+) {
+    let _span = tracing::info_span!("assign_light_subsets").entered();
+    let has_virtual_lights = lights
+        .environment
+        .as_ref()
+        .is_some_and(|e| e.lights.len() > 1);
+    for (interleave, mut plan) in &mut cameras {
+        let light_subsets = interleave
+            .filter(|i| has_virtual_lights && i.is_active())
+            .map(|i| {
+                let count = i.subset_count();
+                LightSubsets {
+                    pattern: i.pattern.max(1),
+                    count,
+                    offset: (mix64(seed.0 ^ 0x5ab5_e75e) % u64::from(count)) as u32,
+                }
+            });
+        plan.set_if_neq(FramePlan {
+            light_subsets,
+            ..*plan
+        });
+    }
+}
+
 /// Renders one frame per camera, tiles in parallel on the render pool. The frame index
 /// is the film's frame count, or 0 — restarting accumulation — when the camera or the
 /// scene changed since the last frame.
@@ -166,7 +249,7 @@ pub fn render_tiles(
     lights: Res<LightSet>,
     seed: Res<RenderSeed>,
     progress: Res<TileProgress>,
-    mut cameras: Query<(Ref<Camera>, Ref<Transform>, &Film, &mut FrameBuffer)>,
+    mut cameras: Query<RenderedCamera>,
     mut stats: ResMut<RenderStats>,
 ) {
     let _span = tracing::info_span!("render_tiles").entered();
@@ -187,15 +270,16 @@ pub fn render_tiles(
         }
     };
     let mut frame_stats = sylva_engine::bvh::TraversalStats::default();
-    for (camera, transform, film, mut frame) in &mut cameras {
+    for (camera, transform, plan, film, mut frame) in &mut cameras {
         let resized = film.width() != camera.width || film.height() != camera.height;
         // A film loaded from a checkpoint continues its frame sequence even though the
         // world around it is new.
-        let changed = scene_changed || camera.is_changed() || transform.is_changed();
+        let changed =
+            scene_changed || camera.is_changed() || transform.is_changed() || plan.is_changed();
         let restart = resized || (changed && !film.awaiting_resume());
         let frame_index = if restart { 0 } else { film.frames() };
         let view = CameraView::new(&camera, &transform.to_affine());
-        let params = RenderParams::for_camera(&camera, seed.0);
+        let params = RenderParams::for_camera(&camera, seed.0).with_plan(&plan);
         *frame = pool.install(|| render_frame(&scene, &view, &params, frame_index, &on_tile));
         frame_stats.add(&frame.stats);
     }

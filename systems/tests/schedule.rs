@@ -264,3 +264,56 @@ fn data_parallel_work_runs_only_on_the_render_pool() {
     }
     assert!(seen.len() <= threads);
 }
+
+#[test]
+fn planning_stages_follow_the_scene_and_restart_accumulation_only_on_change() {
+    use sylva_engine::environment::{EnvironmentLight, EnvironmentMap};
+    use sylva_engine::interleave::LightInterleave;
+    use sylva_engine::render::FramePlan;
+    use sylva_engine::shading::Texture;
+    use sylva_engine::transparency::TransparencyCurve;
+    let mut w = test_world(2);
+    let curve = TransparencyCurve::default();
+    w.world
+        .entity_mut(w.camera)
+        .insert((curve, LightInterleave::default()));
+    let plan = |w: &TestWorld| *w.world.get::<FramePlan>(w.camera).unwrap();
+    w.run();
+    assert_eq!(
+        plan(&w),
+        FramePlan::default(),
+        "no alpha masks, no virtual lights"
+    );
+
+    let mask = Texture::from_srgba8(2, 1, vec![[90, 160, 60, 255], [0, 0, 0, 0]]).unwrap();
+    w.world.spawn(Shader::alpha_masked(
+        ShaderId(1),
+        Vec3::ONE,
+        Arc::new(mask),
+        0.5,
+    ));
+    w.run();
+    assert_eq!(plan(&w).transparency, Some(curve));
+    assert_eq!(w.film().frames(), 1, "a new plan restarts accumulation");
+    w.run();
+    assert_eq!(w.film().frames(), 2, "an unchanged plan keeps accumulating");
+
+    let texels = (0..32)
+        .map(|i| Vec3::splat(0.1 + i as f32 * 0.05))
+        .collect();
+    let map = EnvironmentMap::new(8, 4, texels).unwrap().0;
+    w.world.spawn(EnvironmentLight::new(map, 32));
+    w.run();
+    let subsets = plan(&w).light_subsets.expect("virtual lights get subsets");
+    assert_eq!((subsets.pattern, subsets.count), (4, 16));
+    assert!(subsets.offset < 16);
+    w.run();
+    assert_eq!(w.film().frames(), 2);
+
+    w.world
+        .entity_mut(w.camera)
+        .remove::<(LightInterleave, TransparencyCurve)>();
+    w.run();
+    assert_eq!(plan(&w), FramePlan::default());
+    assert_eq!(w.film().frames(), 1);
+}
