@@ -27,6 +27,8 @@ pub mod prelude {
     pub use glam::{Quat, Vec3};
     pub use sylva_engine::components::Layer;
     pub use sylva_engine::environment::{EnvironmentLight, EnvironmentMap};
+    pub use sylva_engine::interleave::LightInterleave;
+    pub use sylva_engine::transparency::TransparencyCurve;
     pub use sylva_engine::{
         Camera, DirectionalLight, Film, FrameBuffer, GeometryId, GeometryLibrary, Hidden, Instance,
         Lens, Shader, ShaderId, SkyLight, Transform,

@@ -31,9 +31,22 @@ struct Cli {
 #[derive(Subcommand, Debug)]
 enum Command {
     /// Render a scene to an image (.png tone-mapped sRGB, or .exr linear radiance).
-    Render(RenderArgs),
+    Render(Box<RenderArgs>),
     /// Print a scene's statistics: species, triangles, instances, memory, build times.
     Info(SceneArgs),
+    /// Print the error of linear images (.exr or .hdr) against a reference: RMSE and
+    /// relMSE (mean of (I−R)²/(R²+0.01) over pixels and channels).
+    Compare(CompareArgs),
+}
+
+#[derive(Args, Debug)]
+struct CompareArgs {
+    /// The reference image.
+    #[arg(long, short, value_name = "FILE")]
+    reference: PathBuf,
+    /// Images to compare with it.
+    #[arg(required = true, value_name = "IMAGE")]
+    images: Vec<PathBuf>,
 }
 
 #[derive(Args, Debug)]
@@ -60,10 +73,53 @@ struct SceneArgs {
 /// Quality presets of `--preset`.
 #[derive(clap::ValueEnum, Clone, Copy, Debug, PartialEq, Eq)]
 enum Preset {
-    /// 1 camera sample and 1 light sample per hit: fast frames to refine progressively.
+    /// 1 camera sample and 1 light sample per hit, adaptive transparency on: fast frames
+    /// to refine progressively.
     Interactive,
-    /// 4 camera samples and 4 light samples per hit.
+    /// 4 camera samples and 4 light samples per hit, exact transparency.
     Still,
+}
+
+/// `on` or `off`.
+#[derive(clap::ValueEnum, Clone, Copy, Debug, PartialEq, Eq)]
+enum Switch {
+    /// Enabled.
+    On,
+    /// Disabled.
+    Off,
+}
+
+/// Parses `NEAR,FAR,DEPTH_NEAR,DEPTH_FAR[,WEIGHT]` into a checked transparency curve.
+fn parse_transparency_curve(text: &str) -> Result<TransparencyCurve, String> {
+    let parts: Vec<&str> = text.split(',').map(str::trim).collect();
+    if !(4..=5).contains(&parts.len()) {
+        return Err(format!(
+            "'{text}': expected NEAR,FAR,DEPTH_NEAR,DEPTH_FAR[,WEIGHT], e.g. 5,40,4,1,0.75"
+        ));
+    }
+    let number = |i: usize| -> Result<f32, String> {
+        parts[i]
+            .parse::<f32>()
+            .map_err(|_| format!("'{}' is not a number", parts[i]))
+    };
+    let depth = |i: usize| -> Result<u32, String> {
+        parts[i]
+            .parse::<u32>()
+            .map_err(|_| format!("'{}' is not a whole number of holes", parts[i]))
+    };
+    let curve = TransparencyCurve {
+        near: number(0)?,
+        far: number(1)?,
+        depth_near: depth(2)?,
+        depth_far: depth(3)?,
+        weight: if parts.len() == 5 {
+            number(4)?
+        } else {
+            TransparencyCurve::default().weight
+        },
+    };
+    curve.validate()?;
+    Ok(curve)
 }
 
 #[derive(Args, Debug)]
@@ -77,10 +133,26 @@ struct RenderArgs {
     /// Image height in pixels.
     #[arg(long, default_value_t = 480, value_parser = clap::value_parser!(u32).range(1..=16384))]
     height: u32,
-    /// Quality preset: interactive (1 camera sample, 1 light sample per hit) or still
-    /// (4 and 4). --spp and --light-samples override it.
+    /// Quality preset: interactive (1 camera sample, 1 light sample per hit, adaptive
+    /// transparency) or still (4 and 4, exact). --spp, --light-samples and
+    /// --adaptive-transparency override it.
     #[arg(long, value_enum)]
     preset: Option<Preset>,
+    /// Treat alpha holes beyond a distance-dependent allowance as opaque (shaded with the
+    /// leaf texture's mean colour × 0.75) [default: on with --preset interactive, else off].
+    #[arg(long, value_enum, value_name = "on|off")]
+    adaptive_transparency: Option<Switch>,
+    /// The allowance: NEAR,FAR,DEPTH_NEAR,DEPTH_FAR[,WEIGHT] — up to NEAR metres a ray
+    /// passes DEPTH_NEAR holes, beyond FAR only DEPTH_FAR, linear in between.
+    #[arg(long, value_name = "CURVE", default_value = "5,40,4,1,0.75", value_parser = parse_transparency_curve)]
+    transparency_curve: TransparencyCurve,
+    /// Interleaved sampling of the virtual lights: pixels of an N×N tile draw from
+    /// different light subsets, rotating every sample (1 = off, independent picks).
+    #[arg(long, value_name = "N", default_value_t = 4, value_parser = clap::value_parser!(u32).range(1..=64))]
+    interleave: u32,
+    /// Light subsets for --interleave [default: N²].
+    #[arg(long, value_name = "S", value_parser = clap::value_parser!(u32).range(1..=65536))]
+    subsets: Option<u32>,
     /// Camera samples per pixel per frame [default: 4, or the preset's].
     #[arg(long, value_parser = clap::value_parser!(u32).range(1..=65536))]
     spp: Option<u32>,
@@ -129,8 +201,9 @@ struct RenderArgs {
 fn main() {
     let cli = Cli::parse();
     let result = match cli.command {
-        Command::Render(args) => render(args),
+        Command::Render(args) => render(*args),
         Command::Info(args) => info(args),
+        Command::Compare(args) => compare(args),
     };
     if let Err(e) = result {
         eprintln!("error: {e:#}");
@@ -259,9 +332,16 @@ fn parse_duration(text: &str) -> Result<Duration, String> {
 }
 
 /// Identifies everything a checkpoint's pixels depend on.
-fn checkpoint_fingerprint(args: &RenderArgs, width: u32, spp: u32, samples: u32) -> u64 {
+fn checkpoint_fingerprint(
+    args: &RenderArgs,
+    width: u32,
+    spp: u32,
+    samples: u32,
+    transparency: Option<TransparencyCurve>,
+    interleave: LightInterleave,
+) -> u64 {
     let text = format!(
-        "{}|{}|{}x{}|{}|{}|{:?}|{}",
+        "{}|{}|{}x{}|{}|{}|{:?}|{}|{:?}|{:?}",
         scene_label(&args.scene),
         args.scene.seed,
         width,
@@ -269,7 +349,9 @@ fn checkpoint_fingerprint(args: &RenderArgs, width: u32, spp: u32, samples: u32)
         spp,
         samples,
         args.env,
-        args.lights
+        args.lights,
+        transparency,
+        interleave
     );
     text.bytes().fold(0xcbf2_9ce4_8422_2325u64, |h, b| {
         (h ^ b as u64).wrapping_mul(0x1000_0000_01b3)
@@ -298,17 +380,10 @@ fn render(args: RenderArgs) -> Result<()> {
     let _trace_guard = init_tracing(args.trace.as_deref());
     let mut world = World::new();
     let environment = match &args.env {
-        Some(path) => {
-            let loaded = sylva::scenes::environment::load_environment(path)?;
-            if loaded.repaired_texels > 0 {
-                eprintln!(
-                    "warning: {}: {} NaN, infinite or negative texels set to zero",
-                    path.display(),
-                    loaded.repaired_texels
-                );
-            }
-            Some(EnvironmentLight::new(loaded.map, args.lights as usize))
-        }
+        Some(path) => Some(EnvironmentLight::new(
+            load_linear_image(path)?,
+            args.lights as usize,
+        )),
         None => None,
     };
     let (mut scene, aspect) = build(&mut world, &args.scene)?;
@@ -331,6 +406,15 @@ fn render(args: RenderArgs) -> Result<()> {
     };
     let spp = args.spp.unwrap_or(preset_spp);
     let samples = args.sky_samples.unwrap_or(preset_samples);
+    let adaptive = args.adaptive_transparency.unwrap_or(match args.preset {
+        Some(Preset::Interactive) => Switch::On,
+        _ => Switch::Off,
+    });
+    let transparency = (adaptive == Switch::On).then_some(args.transparency_curve);
+    let interleave = LightInterleave {
+        pattern: args.interleave,
+        subsets: args.subsets.unwrap_or(0),
+    };
     scene.camera.width = width;
     scene.camera.height = args.height;
     scene.camera.samples_per_pixel = spp;
@@ -342,7 +426,12 @@ fn render(args: RenderArgs) -> Result<()> {
     if let Some(environment) = environment {
         world.spawn(environment);
     }
-    let fingerprint = checkpoint_fingerprint(&args, width, spp, samples);
+    let mut camera = world.entity_mut(spawned.camera);
+    camera.insert(interleave);
+    if let Some(curve) = transparency {
+        camera.insert(curve);
+    }
+    let fingerprint = checkpoint_fingerprint(&args, width, spp, samples, transparency, interleave);
     if let Some(path) = &args.resume {
         let film = Film::read_checkpoint(path, fingerprint)?;
         world.entity_mut(spawned.camera).insert(film);
@@ -428,7 +517,7 @@ fn render(args: RenderArgs) -> Result<()> {
     if !args.quiet {
         let rendered = render_stats.frames;
         println!(
-            "{}: {}x{}, {} frames at {} spp ({} spp in all) -> {}\n  {} instances, {} instanced triangles ({} unique), BLAS build {:.2} s, TLAS build {:.1} ms, scene generation {:.2} s\n  render {:.2} s ({:.3} s per frame), {:.2} M rays/s ({} camera + {} shadow rays), {:.2} transparency segments per camera ray, total {:.2} s",
+            "{}: {}x{}, {} frames at {} spp ({} spp in all) -> {}\n  {} instances, {} instanced triangles ({} unique), BLAS build {:.2} s, TLAS build {:.1} ms, scene generation {:.2} s\n  render {:.2} s ({:.3} s per frame), {:.2} M rays/s ({} camera + {} shadow rays), {:.2} transparency segments per camera ray ({:.2} holes tested), {} holes made opaque, total {:.2} s",
             scene_label(&args.scene),
             width,
             args.height,
@@ -448,7 +537,58 @@ fn render(args: RenderArgs) -> Result<()> {
             group(render_stats.total.closest_rays),
             group(render_stats.total.any_rays),
             render_stats.total.segments_per_closest_ray(),
+            render_stats.total.hole_tests_per_closest_ray(),
+            group(render_stats.total.opaque_holes),
             wall.as_secs_f64(),
+        );
+    }
+    Ok(())
+}
+
+/// A linear image (.hdr or .exr: an environment map, or a render to compare), with
+/// NaN, infinite and negative values read as zero and counted in a warning.
+fn load_linear_image(path: &Path) -> Result<EnvironmentMap> {
+    let loaded = sylva::scenes::environment::load_environment(path)?;
+    if loaded.repaired_texels > 0 {
+        eprintln!(
+            "warning: {}: {} NaN, infinite or negative texels set to zero",
+            path.display(),
+            loaded.repaired_texels
+        );
+    }
+    Ok(loaded.map)
+}
+
+/// The pixels of a linear image, row-major.
+fn pixels(map: &EnvironmentMap) -> Vec<Vec3> {
+    (0..map.height())
+        .flat_map(|y| (0..map.width()).map(move |x| map.texel(x, y)))
+        .collect()
+}
+
+fn compare(args: CompareArgs) -> Result<()> {
+    let reference = load_linear_image(&args.reference)?;
+    let (width, height) = (reference.width(), reference.height());
+    let reference = pixels(&reference);
+    println!("{:<40} {:>12} {:>12}", "image", "rmse", "relmse");
+    for path in &args.images {
+        let image = load_linear_image(path)?;
+        let (w, h) = (image.width(), image.height());
+        let image = pixels(&image);
+        if (w, h) != (width, height) {
+            bail!(
+                "{}: the image is {w}x{h} but the reference {} is {width}x{height}",
+                path.display(),
+                args.reference.display()
+            );
+        }
+        let error = sylva::engine::metrics::image_error(&reference, &image)
+            .expect("sizes were checked and are non-zero");
+        println!(
+            "{:<40} {:>12.6} {:>12.6}",
+            path.display(),
+            error.rmse,
+            error.relmse
         );
     }
     Ok(())

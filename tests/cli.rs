@@ -394,25 +394,32 @@ fn resuming_a_checkpoint_equals_one_uninterrupted_run_for_any_thread_count() {
     assert!(whole == one, "the thread count changed the image");
 
     // Other settings cannot resume it.
-    let stderr = fail(&[
-        "render",
-        "--width",
-        "64",
-        "--height",
-        "24",
-        "--spp",
-        "2",
-        "--frames",
-        "4",
-        "--resume",
-        checkpoint.to_str().unwrap(),
-        "--out",
-        dir.join("x.png").to_str().unwrap(),
-    ]);
-    assert!(
-        stderr.contains("half.film") && stderr.contains("other settings"),
-        "{stderr}"
-    );
+    let out = dir.join("x.png");
+    for other in [
+        ["--spp", "2", "--interleave", "4"],
+        ["--spp", "1", "--adaptive-transparency", "on"],
+        ["--spp", "1", "--interleave", "2"],
+    ] {
+        let mut args = vec![
+            "render",
+            "--width",
+            "64",
+            "--height",
+            "24",
+            "--frames",
+            "4",
+            "--resume",
+            checkpoint.to_str().unwrap(),
+            "--out",
+            out.to_str().unwrap(),
+        ];
+        args.extend_from_slice(&other);
+        let stderr = fail(&args);
+        assert!(
+            stderr.contains("half.film") && stderr.contains("other settings"),
+            "{other:?}: {stderr}"
+        );
+    }
 }
 
 #[test]
@@ -435,6 +442,10 @@ fn snapshots_time_budgets_and_presets() {
         out.to_str().unwrap(),
     ]);
     assert!(stdout.contains("4 frames at 1 spp"), "{stdout}");
+    assert!(
+        !stdout.contains(" 0 holes made opaque"),
+        "the interactive preset uses adaptive transparency: {stdout}"
+    );
     for frames in [2, 4] {
         assert!(
             dir.join(format!("p.f{frames:06}.png")).is_file(),
@@ -465,4 +476,83 @@ fn snapshots_time_budgets_and_presets() {
     let bad = sylva(&["render", "--time", "soon", "--out", out.to_str().unwrap()]);
     assert_eq!(bad.status.code(), Some(2));
     assert!(String::from_utf8_lossy(&bad.stderr).contains("not a duration"));
+}
+
+#[test]
+fn adaptive_transparency_interleaving_and_compare() {
+    let dir = temp_dir("quality");
+    let exact = render_exr(&dir, "exact.exr", &["--adaptive-transparency", "off"]);
+    // Every hole opaque from the camera on: the image must change.
+    let aggressive = [
+        "--adaptive-transparency",
+        "on",
+        "--transparency-curve",
+        "0,1,0,0",
+    ];
+    let opaque = render_exr(&dir, "opaque.exr", &aggressive);
+    assert!(exact != opaque, "adaptive transparency changed nothing");
+    let independent = render_exr(&dir, "independent.exr", &["--interleave", "1"]);
+    assert!(exact != independent, "interleaving changed nothing");
+
+    let path = |name: &str| dir.join(name).to_string_lossy().into_owned();
+    let report = succeed(&[
+        "compare",
+        "--reference",
+        &path("exact.exr"),
+        &path("exact.exr"),
+        &path("opaque.exr"),
+    ]);
+    let relmse: Vec<f64> = report
+        .lines()
+        .skip(1)
+        .map(|l| l.split_whitespace().last().unwrap().parse().unwrap())
+        .collect();
+    assert_eq!(relmse.len(), 2, "{report}");
+    assert!(relmse[0] == 0.0 && relmse[1] > 0.0, "{report}");
+    succeed(&[
+        "render",
+        "--width",
+        "8",
+        "--height",
+        "8",
+        "--spp",
+        "1",
+        "--quiet",
+        "--out",
+        &path("small.exr"),
+    ]);
+    let stderr = fail(&["compare", "-r", &path("exact.exr"), &path("small.exr")]);
+    assert!(
+        stderr.contains("small.exr") && stderr.contains("8x8"),
+        "{stderr}"
+    );
+    let stderr = fail(&["compare", "-r", &path("missing.exr"), &path("small.exr")]);
+    assert!(stderr.contains("missing.exr"), "{stderr}");
+
+    for (curve, expected) in [
+        ("5,5,1,1", "must be less than far"),
+        ("1,2,3", "expected NEAR,FAR"),
+        ("1,2,40,1", "at most 32"),
+        ("1,2,a,1", "'a' is not a whole number"),
+    ] {
+        let run = sylva(&[
+            "render",
+            "--transparency-curve",
+            curve,
+            "--out",
+            &path("x.png"),
+        ]);
+        let stderr = String::from_utf8_lossy(&run.stderr);
+        assert_eq!(run.status.code(), Some(2), "{curve}: {stderr}");
+        assert!(stderr.contains(expected), "{curve}: {stderr}");
+    }
+    let run = sylva(&[
+        "render",
+        "--adaptive-transparency",
+        "maybe",
+        "--out",
+        &path("x.png"),
+    ]);
+    assert_eq!(run.status.code(), Some(2));
+    std::fs::remove_dir_all(dir).ok();
 }
