@@ -12,6 +12,10 @@ use sylva::prelude::*;
 use sylva::scenes::SceneBuild;
 use tracing_subscriber::prelude::*;
 
+mod cli {
+    pub mod converge;
+}
+
 /// Sylva: a ray tracer for dense plant ecosystems.
 ///
 /// Examples:
@@ -34,9 +38,63 @@ enum Command {
     Render(Box<RenderArgs>),
     /// Print a scene's statistics: species, triangles, instances, memory, build times.
     Info(SceneArgs),
+    /// Measure error against wall time: render a converged reference (cached in the
+    /// output directory), then run each sampling setting progressively and record RMSE
+    /// and relMSE after every frame; writes error_vs_time.csv and error_vs_time.png and
+    /// prints the time to reach relMSE 1e-2 and 1e-3 and the convergence slope.
+    Converge(Box<ConvergeArgs>),
     /// Print the error of linear images (.exr or .hdr) against a reference: RMSE and
     /// relMSE (mean of (I−R)²/(R²+0.01) over pixels and channels).
     Compare(CompareArgs),
+}
+
+#[derive(Args, Debug)]
+struct ConvergeArgs {
+    #[command(flatten)]
+    scene: SceneArgs,
+    /// Image width in pixels.
+    #[arg(long, default_value_t = 320, value_parser = clap::value_parser!(u32).range(1..=16384))]
+    width: u32,
+    /// Image height in pixels.
+    #[arg(long, default_value_t = 240, value_parser = clap::value_parser!(u32).range(1..=16384))]
+    height: u32,
+    /// Render only the central FRACTION of the view (a crop, by narrowing the field of view).
+    #[arg(long, default_value_t = 1.0, value_name = "FRACTION", value_parser = parse_fraction)]
+    crop: f32,
+    /// Light with a latitude-longitude HDR map instead of the scene's sun and sky.
+    #[arg(long, value_name = "FILE")]
+    env: Option<PathBuf>,
+    /// Virtual lights the map is cut into.
+    #[arg(long, default_value_t = 1024, value_parser = clap::value_parser!(u32).range(1..=65536))]
+    lights: u32,
+    /// Wall time each setting may refine for (e.g. 10s, 2m).
+    #[arg(long, default_value = "10s", value_parser = parse_duration)]
+    budget: Duration,
+    /// Most frames per setting.
+    #[arg(long, default_value_t = 100_000, value_parser = clap::value_parser!(u32).range(1..))]
+    max_frames: u32,
+    /// Frames of the reference: still preset (4 camera and 4 light samples), exact
+    /// transparency, a sampler seed of its own.
+    #[arg(long, default_value_t = 64, value_parser = clap::value_parser!(u32).range(1..))]
+    reference_frames: u32,
+    /// Settings to run, comma-separated [default: interactive, interactive-exact,
+    /// interactive-exact-random, still, interactive-1-thread].
+    #[arg(long, value_delimiter = ',', value_name = "NAMES")]
+    configs: Vec<String>,
+    /// Output directory (created if missing; holds the cached reference).
+    #[arg(long, short)]
+    out: PathBuf,
+    /// No progress output.
+    #[arg(long, short)]
+    quiet: bool,
+}
+
+/// Parses a fraction in (0, 1].
+fn parse_fraction(text: &str) -> Result<f32, String> {
+    match text.parse::<f32>() {
+        Ok(f) if f > 0.0 && f <= 1.0 => Ok(f),
+        _ => Err(format!("'{text}' must be a number in (0, 1]")),
+    }
 }
 
 #[derive(Args, Debug)]
@@ -204,6 +262,7 @@ fn main() {
         Command::Render(args) => render(*args),
         Command::Info(args) => info(args),
         Command::Compare(args) => compare(args),
+        Command::Converge(args) => cli::converge::run(*args),
     };
     if let Err(e) = result {
         eprintln!("error: {e:#}");
@@ -288,6 +347,30 @@ fn import_gltf(
     )
 }
 
+/// Builds the scene and, with `env`, the environment light that replaces its sun and sky.
+fn build_lit(
+    world: &mut World,
+    args: &SceneArgs,
+    env: Option<&Path>,
+    lights: u32,
+) -> Result<(SceneBuild, Option<f32>, Option<EnvironmentLight>)> {
+    let environment = match env {
+        Some(path) => Some(EnvironmentLight::new(
+            load_linear_image(path)?,
+            lights as usize,
+        )),
+        None => None,
+    };
+    let (mut scene, aspect) = build(world, args)?;
+    if environment.is_some() {
+        // The map carries the sun and the sky: keeping the scene's would count them twice.
+        scene.sun = None;
+        scene.sky = None;
+        scene.environment = None;
+    }
+    Ok((scene, aspect, environment))
+}
+
 /// Name of what is being rendered, for messages.
 fn scene_label(args: &SceneArgs) -> String {
     match &args.gltf {
@@ -353,6 +436,11 @@ fn checkpoint_fingerprint(
         transparency,
         interleave
     );
+    fnv1a(&text)
+}
+
+/// FNV-1a hash of a settings description.
+fn fnv1a(text: &str) -> u64 {
     text.bytes().fold(0xcbf2_9ce4_8422_2325u64, |h, b| {
         (h ^ b as u64).wrapping_mul(0x1000_0000_01b3)
     })
@@ -379,20 +467,8 @@ fn render(args: RenderArgs) -> Result<()> {
     }
     let _trace_guard = init_tracing(args.trace.as_deref());
     let mut world = World::new();
-    let environment = match &args.env {
-        Some(path) => Some(EnvironmentLight::new(
-            load_linear_image(path)?,
-            args.lights as usize,
-        )),
-        None => None,
-    };
-    let (mut scene, aspect) = build(&mut world, &args.scene)?;
-    if environment.is_some() {
-        // The map carries the sun and the sky: keeping the scene's would count them twice.
-        scene.sun = None;
-        scene.sky = None;
-        scene.environment = None;
-    }
+    let (mut scene, aspect, environment) =
+        build_lit(&mut world, &args.scene, args.env.as_deref(), args.lights)?;
     let aspect = aspect
         .filter(|a| a.is_finite() && *a > 0.0)
         .unwrap_or(4.0 / 3.0);

@@ -556,3 +556,51 @@ fn adaptive_transparency_interleaving_and_compare() {
     assert_eq!(run.status.code(), Some(2));
     std::fs::remove_dir_all(dir).ok();
 }
+
+#[test]
+fn converge_writes_the_csv_the_plot_and_a_table_and_caches_its_reference() {
+    let dir = temp_dir("converge");
+    let out = dir.to_string_lossy().into_owned();
+    let args = [
+        "converge",
+        "--width",
+        "24",
+        "--height",
+        "16",
+        "--budget",
+        "300ms",
+        "--max-frames",
+        "6",
+        "--reference-frames",
+        "2",
+        "--configs",
+        "interactive,interactive-exact-random",
+        "--out",
+        &out,
+    ];
+    let first = succeed(&args);
+    assert!(first.contains("reference: 2 frames"), "{first}");
+    for name in ["interactive ", "interactive-exact-random "] {
+        assert!(
+            first.lines().any(|l| l.starts_with(name)),
+            "{name}: {first}"
+        );
+    }
+    let csv = std::fs::read_to_string(dir.join("error_vs_time.csv")).unwrap();
+    let mut lines = csv.lines();
+    assert_eq!(lines.next(), Some("config,frame,time_s,spp,rmse,relmse"));
+    let rows: Vec<Vec<&str>> = lines.map(|l| l.split(',').collect()).collect();
+    assert!(rows.len() >= 2 && rows.len() <= 12, "{csv}");
+    for row in &rows {
+        let relmse: f64 = row[5].parse().unwrap();
+        assert!(relmse.is_finite() && relmse > 0.0, "{row:?}");
+    }
+    let plot = image::open(dir.join("error_vs_time.png")).unwrap();
+    assert_eq!((plot.width(), plot.height()), (720, 480));
+
+    let second = succeed(&args);
+    assert!(second.contains("reference: cached"), "{second}");
+    let stderr = fail(&["converge", "--configs", "fastest", "--out", &out]);
+    assert!(stderr.contains("unknown setting 'fastest'"), "{stderr}");
+    std::fs::remove_dir_all(dir).ok();
+}

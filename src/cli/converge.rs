@@ -1,0 +1,219 @@
+//! `sylva converge`: the reference (rendered once, cached as an exact checkpoint in the
+//! output directory), one progressive run per setting, then the CSV, the plot and the
+//! table.
+
+use crate::{ConvergeArgs, build_lit, fnv1a, init_tracing, scene_label};
+use anyhow::{Context, Result};
+use indicatif::{ProgressBar, ProgressStyle};
+use std::fmt::Write as _;
+use sylva::converge::{
+    ErrorSample, Setting, film_pixels, measure, render_reference, summarize, write_csv,
+};
+use sylva::plot::plot_error_vs_time;
+use sylva::prelude::{Entity, Film, RenderSeed, Schedule, Vec3, World, frame_schedule, spawn};
+
+/// The reference's sampler seed differs from the runs' so their noise is independent.
+const REFERENCE_SEED_OFFSET: u64 = 0x5eed_0f4e_f500;
+
+pub fn run(args: ConvergeArgs) -> Result<()> {
+    let _trace_guard = init_tracing(None);
+    let settings = chosen_settings(&args.configs)?;
+    std::fs::create_dir_all(&args.out)
+        .with_context(|| format!("{}: cannot create the directory", args.out.display()))?;
+
+    let mut world = World::new();
+    let (mut scene, _, environment) =
+        build_lit(&mut world, &args.scene, args.env.as_deref(), args.lights)?;
+    scene.camera.width = args.width;
+    scene.camera.height = args.height;
+    let half = (scene.camera.vertical_fov * 0.5).tan() * args.crop;
+    scene.camera.vertical_fov = 2.0 * half.atan();
+    let spawned = spawn(&mut world, scene);
+    if let Some(environment) = environment {
+        world.spawn(environment);
+    }
+    let camera = spawned.camera;
+    let mut schedule = frame_schedule();
+
+    let reference = reference(&args, &mut world, &mut schedule, camera)?;
+    let mut runs: Vec<(Setting, Vec<ErrorSample>)> = Vec::new();
+    for setting in settings {
+        setting
+            .apply(&mut world, camera)
+            .map_err(|e| anyhow::anyhow!("could not start the worker threads: {e}"))?;
+        world.insert_resource(RenderSeed(args.scene.seed));
+        let bar = spinner(args.quiet, &setting.name);
+        let samples = measure(
+            &mut world,
+            &mut schedule,
+            camera,
+            &reference,
+            args.budget,
+            args.max_frames,
+            &mut |s| {
+                bar.set_message(format!(
+                    "{}: frame {}, {:.1} s, relMSE {:.2e}",
+                    setting.name, s.frame, s.time_s, s.relmse
+                ))
+            },
+        );
+        bar.finish_and_clear();
+        runs.push((setting, samples));
+    }
+
+    let csv = args.out.join("error_vs_time.csv");
+    write_csv(&csv, &runs).with_context(|| format!("{}: cannot write", csv.display()))?;
+    let png = args.out.join("error_vs_time.png");
+    let title = format!(
+        "{} {}x{}: relMSE against wall time",
+        scene_label(&args.scene),
+        args.width,
+        args.height
+    );
+    let curves: Vec<(String, Vec<ErrorSample>)> = runs
+        .iter()
+        .map(|(s, samples)| (s.name.clone(), samples.clone()))
+        .collect();
+    plot_error_vs_time(&png, &title, &curves, (720, 480))?;
+    print!("{}", table(&runs));
+    if !args.quiet {
+        println!("wrote {} and {}", csv.display(), png.display());
+    }
+    Ok(())
+}
+
+/// The settings named in `--configs`, or all standard ones.
+fn chosen_settings(names: &[String]) -> Result<Vec<Setting>> {
+    let all = Setting::standard();
+    if names.is_empty() {
+        return Ok(all);
+    }
+    names
+        .iter()
+        .map(|name| {
+            all.iter()
+                .find(|s| &s.name == name)
+                .cloned()
+                .ok_or_else(|| {
+                    let known: Vec<&str> = all.iter().map(|s| s.name.as_str()).collect();
+                    anyhow::anyhow!("unknown setting '{name}' (available: {})", known.join(", "))
+                })
+        })
+        .collect()
+}
+
+fn spinner(quiet: bool, what: &str) -> ProgressBar {
+    if quiet {
+        return ProgressBar::hidden();
+    }
+    let bar = ProgressBar::new_spinner();
+    bar.set_style(
+        ProgressStyle::with_template("{spinner} {msg}, {elapsed_precise}")
+            .expect("the template is valid"),
+    );
+    bar.set_message(what.to_string());
+    bar.enable_steady_tick(std::time::Duration::from_millis(200));
+    bar
+}
+
+/// The reference pixels: loaded from `OUT/reference.film` when it was made for this
+/// scene, view and reference length, rendered (and cached) otherwise.
+fn reference(
+    args: &ConvergeArgs,
+    world: &mut World,
+    schedule: &mut Schedule,
+    camera: Entity,
+) -> Result<Vec<Vec3>> {
+    let key = fnv1a(&format!(
+        "reference|{}|{}|{}x{}|{}|{:?}|{}|{}",
+        scene_label(&args.scene),
+        args.scene.seed,
+        args.width,
+        args.height,
+        args.crop,
+        args.env,
+        args.lights,
+        args.reference_frames
+    ));
+    let cache = args.out.join("reference.film");
+    if let Ok(film) = Film::read_checkpoint(&cache, key) {
+        if !args.quiet {
+            println!(
+                "reference: cached {} ({} frames, {} spp)",
+                cache.display(),
+                film.frames(),
+                film.frames() * 4
+            );
+        }
+        return Ok(film.mean_rgb().into_iter().map(Vec3::from).collect());
+    }
+    Setting {
+        name: "reference".into(),
+        ..Setting::still()
+    }
+    .apply(world, camera)
+    .map_err(|e| anyhow::anyhow!("could not start the worker threads: {e}"))?;
+    let bar = if args.quiet {
+        ProgressBar::hidden()
+    } else {
+        ProgressBar::new(u64::from(args.reference_frames))
+    };
+    bar.set_style(
+        ProgressStyle::with_template("reference [{bar:40}] {pos}/{len} frames, eta {eta}")
+            .expect("the template is valid")
+            .progress_chars("=> "),
+    );
+    let pixels = render_reference(
+        world,
+        schedule,
+        camera,
+        args.reference_frames,
+        args.scene.seed ^ REFERENCE_SEED_OFFSET,
+        &mut |frame| bar.set_position(u64::from(frame)),
+    );
+    bar.finish_and_clear();
+    let film = world
+        .get::<Film>(camera)
+        .context("the camera has no film")?;
+    film.write_checkpoint(&cache, key)?;
+    #[cfg(feature = "exr")]
+    film.write(&args.out.join("reference.exr"), 0.0)?;
+    if !args.quiet {
+        println!(
+            "reference: {} frames, {} spp -> {}",
+            args.reference_frames,
+            args.reference_frames * 4,
+            cache.display()
+        );
+    }
+    debug_assert_eq!(pixels, film_pixels(world, camera));
+    Ok(pixels)
+}
+
+/// The summary table, one row per setting.
+fn table(runs: &[(Setting, Vec<ErrorSample>)]) -> String {
+    let seconds = |t: Option<f64>| t.map_or("—".to_string(), |t| format!("{t:.2}"));
+    let mut out = String::new();
+    let _ = writeln!(
+        out,
+        "{:<26} {:>7} {:>8} {:>9} {:>12} {:>11} {:>11} {:>7}",
+        "setting", "frames", "spp", "time s", "final relMSE", "t(1e-2) s", "t(1e-3) s", "slope"
+    );
+    for (setting, samples) in runs {
+        let summary = summarize(samples);
+        let last = samples.last();
+        let _ = writeln!(
+            out,
+            "{:<26} {:>7} {:>8} {:>9.2} {:>12.3e} {:>11} {:>11} {:>7}",
+            setting.name,
+            last.map_or(0, |s| s.frame),
+            last.map_or(0, |s| s.spp),
+            last.map_or(0.0, |s| s.time_s),
+            summary.final_relmse,
+            seconds(summary.time_to_1e2),
+            seconds(summary.time_to_1e3),
+            summary.slope.map_or("—".to_string(), |s| format!("{s:.2}")),
+        );
+    }
+    out
+}
