@@ -50,12 +50,14 @@ pub struct Candidate {
 pub type Hit = Candidate;
 
 /// Why instances were left out of a build.
-#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+#[derive(Clone, Debug, Default, PartialEq, Eq)]
 pub struct SkippedInstances {
     /// Transforms that are not invertible or not finite.
     pub singular: usize,
     /// Geometry ids not in the library.
     pub unknown_geometry: usize,
+    /// The caller's indices of the left-out instances, in order.
+    pub ids: Vec<u32>,
 }
 
 /// The TLAS: instance records in slot order and the BVH over their world boxes.
@@ -109,6 +111,9 @@ impl TopLevel {
         let skipped = SkippedInstances {
             singular: prepared.iter().filter(|p| p.2 == 1).count(),
             unknown_geometry: prepared.iter().filter(|p| p.2 == 2).count(),
+            ids: (0..prepared.len() as u32)
+                .filter(|&i| prepared[i as usize].2 != 0)
+                .collect(),
         };
         let bounds: Vec<Aabb> = prepared.iter().map(|p| p.0).collect();
         let bvh = Bvh::build(&bounds, params);

@@ -5,8 +5,8 @@
 //! no rebuild, no shader compile or no output does not pay for it:
 //!
 //! 1. `Animate` — reserved for wind sway (nothing runs there yet);
-//! 2. `Prepare` — [`rebuild_top_level`], [`compile_shaders`], [`compile_lights`], side by
-//!    side on the multi-threaded executor;
+//! 2. `Prepare` — [`rebase_world_origin`] then [`rebuild_top_level`], beside
+//!    [`compile_shaders`] and [`compile_lights`] on the multi-threaded executor;
 //! 3. `Plan` — per camera: [`adaptive_transparency_lod`] (only when the scene has
 //!    alpha-masked shaders) and [`assign_light_subsets`] (only when it has virtual
 //!    lights), run when their inputs change;
@@ -92,6 +92,40 @@ pub struct BuildSettings {
     pub top_level: BuildParams,
 }
 
+/// Where the renderer's coordinate origin sits in the world. Instances and cameras are
+/// moved by −origin before the TLAS is built and rays are made, so a scene far from the
+/// world origin keeps the precision it has near it (f32 carries ~7 digits: at 10⁵ m a
+/// coordinate's step is 8 mm, at 10³ m 0.06 mm). `rebase_world_origin` keeps it on a
+/// 1024 m grid near the first camera.
+#[derive(Resource, Clone, Copy, Debug, Default, PartialEq)]
+pub struct WorldOrigin(pub glam::Vec3);
+
+impl WorldOrigin {
+    /// Spacing of the grid the origin snaps to: the TLAS is rebuilt only when the camera
+    /// crosses a cell, and coordinates stay within a few cells of zero.
+    pub const GRID: f32 = 1024.0;
+
+    /// Distance from the world origin beyond which f32 positions step by more than 1 mm
+    /// (2¹⁴ m: steps of 2 mm); plants there are placed with that rounding.
+    pub const PRECISE_RADIUS: f32 = 16384.0;
+
+    /// The grid point nearest to `position`.
+    pub fn snapped(position: glam::Vec3) -> Self {
+        if !position.is_finite() {
+            return Self::default();
+        }
+        Self((position / Self::GRID).round() * Self::GRID)
+    }
+
+    /// `transform` seen from this origin.
+    pub fn relative(&self, transform: glam::Affine3A) -> glam::Affine3A {
+        glam::Affine3A {
+            translation: transform.translation - glam::Vec3A::from(self.0),
+            ..transform
+        }
+    }
+}
+
 /// The seed of every random number the renderer draws.
 #[derive(Resource, Clone, Copy, Debug, Default, PartialEq, Eq)]
 pub struct RenderSeed(pub u64);
@@ -112,6 +146,8 @@ pub struct TopLevelState {
     pub last_build: Duration,
     /// `entities[id]` is the plant entity of TLAS instance id `id`.
     pub entities: Vec<Entity>,
+    /// True once the warning about coarse far-away positions has been given.
+    pub warned_far_positions: bool,
 }
 
 /// What `render_tiles` has done.
@@ -155,6 +191,7 @@ pub fn init_render_world(
     world.init_resource::<LightSet>();
     world.init_resource::<BuildSettings>();
     world.init_resource::<RenderSeed>();
+    world.init_resource::<WorldOrigin>();
     world.init_resource::<TileProgress>();
     world.init_resource::<TopLevelState>();
     world.init_resource::<RenderStats>();
@@ -179,8 +216,11 @@ pub fn frame_schedule() -> Schedule {
             .chain(),
     );
     schedule.add_systems((
-        rebuild_top_level
-            .run_if(instances_changed)
+        (
+            rebase_world_origin,
+            rebuild_top_level.run_if(instances_changed),
+        )
+            .chain()
             .in_set(RenderSystems::Prepare),
         compile_shaders
             .run_if(shaders_changed)

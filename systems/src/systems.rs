@@ -2,7 +2,7 @@
 
 use crate::{
     BuildSettings, ImageOutput, OutputLog, RenderPool, RenderSeed, RenderStats, TileProgress,
-    TopLevelState,
+    TopLevelState, WorldOrigin,
 };
 use bevy_ecs::prelude::*;
 use std::time::Instant;
@@ -37,17 +37,29 @@ type RenderedCamera<'a> = (
     &'a mut FrameBuffer,
 );
 
+/// Moves the [`WorldOrigin`] to the grid point nearest the first camera when the camera
+/// has left its cell (which makes the next TLAS build use it).
+pub fn rebase_world_origin(
+    cameras: Query<&Transform, With<Camera>>,
+    mut origin: ResMut<WorldOrigin>,
+) {
+    if let Some(camera) = cameras.iter().next() {
+        origin.set_if_neq(WorldOrigin::snapped(camera.translation));
+    }
+}
+
 /// Run condition of [`rebuild_top_level`]: a plant was added, moved, re-pointed, hidden,
-/// shown or removed, or the geometry library changed.
+/// shown or removed, the geometry library changed, or the world origin moved.
 pub fn instances_changed(
     changed: Query<(), ChangedPlants>,
     mut removed_instances: RemovedComponents<Instance>,
     mut removed_hidden: RemovedComponents<Hidden>,
     library: Res<GeometryLibrary>,
+    origin: Res<WorldOrigin>,
 ) -> bool {
     // Drain both readers every time so old removals are not seen again next frame.
     let removed = removed_instances.read().count() + removed_hidden.read().count();
-    removed > 0 || !changed.is_empty() || library.is_changed()
+    removed > 0 || !changed.is_empty() || library.is_changed() || origin.is_changed()
 }
 
 /// Rebuilds the TLAS from every visible plant, on the render pool.
@@ -55,6 +67,7 @@ pub fn rebuild_top_level(
     pool: Res<RenderPool>,
     library: Res<GeometryLibrary>,
     settings: Res<BuildSettings>,
+    origin: Res<WorldOrigin>,
     plants: Query<(Entity, &Transform, &Instance), Without<Hidden>>,
     mut top_level: ResMut<TopLevel>,
     mut state: ResMut<TopLevelState>,
@@ -67,18 +80,44 @@ pub fn rebuild_top_level(
             (
                 e,
                 InstanceDesc {
-                    transform: t.to_affine(),
+                    transform: origin.relative(t.to_affine()),
                     geometry: i.geometry,
                 },
             )
         })
         .unzip();
+    let farthest = plants
+        .iter()
+        .map(|(_, t, _)| t.translation.abs().max_element())
+        .fold(0f32, f32::max);
+    if farthest > WorldOrigin::PRECISE_RADIUS && !state.warned_far_positions {
+        state.warned_far_positions = true;
+        tracing::warn!(
+            "plants up to {farthest:.0} m from the world origin: their f32 positions are \
+             rounded to {:.1} mm steps there (rendering itself is camera-relative and keeps \
+             full precision)",
+            f32::EPSILON * farthest * 1e3
+        );
+    }
     let built = pool.install(|| TopLevel::build(&library, &descs, settings.top_level));
-    if built.skipped.singular + built.skipped.unknown_geometry > 0 {
+    if !built.skipped.ids.is_empty() {
+        let named: Vec<String> = built
+            .skipped
+            .ids
+            .iter()
+            .take(10)
+            .map(|&i| format!("{:?}", entities[i as usize]))
+            .collect();
         tracing::warn!(
             singular = built.skipped.singular,
             unknown_geometry = built.skipped.unknown_geometry,
-            "instances left out of the top level"
+            "instances left out of the top level (singular or non-finite transform, or unknown geometry): {}{}",
+            named.join(", "),
+            if built.skipped.ids.len() > 10 {
+                ", …"
+            } else {
+                ""
+            }
         );
     }
     *top_level = built;
@@ -248,6 +287,7 @@ pub fn render_tiles(
     shaders: Res<ShaderTable>,
     lights: Res<LightSet>,
     seed: Res<RenderSeed>,
+    origin: Res<WorldOrigin>,
     progress: Res<TileProgress>,
     mut cameras: Query<RenderedCamera>,
     mut stats: ResMut<RenderStats>,
@@ -278,7 +318,7 @@ pub fn render_tiles(
             scene_changed || camera.is_changed() || transform.is_changed() || plan.is_changed();
         let restart = resized || (changed && !film.awaiting_resume());
         let frame_index = if restart { 0 } else { film.frames() };
-        let view = CameraView::new(&camera, &transform.to_affine());
+        let view = CameraView::new(&camera, &origin.relative(transform.to_affine()));
         let params = RenderParams::for_camera(&camera, seed.0).with_plan(&plan);
         *frame = pool.install(|| render_frame(&scene, &view, &params, frame_index, &on_tile));
         frame_stats.add(&frame.stats);
