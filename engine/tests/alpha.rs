@@ -13,7 +13,7 @@ use sylva_engine::math::Ray;
 use sylva_engine::mesh::TriangleMesh;
 use sylva_engine::render::{RenderScene, SampleShading};
 use sylva_engine::sampling::SampleKey;
-use sylva_engine::shading::{Shader, ShaderId, ShaderTable, Texture};
+use sylva_engine::shading::{Shader, ShaderId, ShaderTable, Texture, UvTransform};
 use sylva_engine::tlas::{InstanceDesc, TopLevel};
 use sylva_engine::transparency::TransparencyCurve;
 
@@ -72,24 +72,46 @@ impl Stack {
 
 /// `layers` quads stacked along −Z, each with its own mask (shader i).
 fn stack(rng: &mut TestRng, layers: usize, holes: f32) -> Stack {
+    stack_placed(rng, layers, holes, 1.0, |i, rng| {
+        let z = -(i as f32) * 0.1 - rng.range(0.0, 0.05);
+        Affine3A::from_translation(Vec3::new(0.0, 0.0, z))
+    })
+}
+
+/// `layers` quads placed by `place`, each with its own mask (shader i) tiled `tiles`
+/// times across it.
+fn stack_placed(
+    rng: &mut TestRng,
+    layers: usize,
+    holes: f32,
+    tiles: f32,
+    mut place: impl FnMut(usize, &mut TestRng) -> Affine3A,
+) -> Stack {
     let mut library = GeometryLibrary::default();
     let mut shaders = Vec::new();
     let mut descs = Vec::new();
     let mut depths = Vec::new();
     for i in 0..layers {
         let g = library.add(Geometry::new("quad", quad(i as u32), BuildParams::BALANCED).unwrap());
-        shaders.push(Shader::alpha_masked(
+        let mut shader = Shader::alpha_masked(
             ShaderId(i as u32),
             Vec3::ONE,
             Arc::new(random_mask(rng, holes)),
             0.5,
-        ));
-        let z = -(i as f32) * 0.1 - rng.range(0.0, 0.05);
+        );
+        if tiles != 1.0 {
+            shader.uv_transform = Some(UvTransform {
+                scale: Vec2::splat(tiles),
+                ..Default::default()
+            });
+        }
+        shaders.push(shader);
+        let transform = place(i, rng);
         descs.push(InstanceDesc {
-            transform: Affine3A::from_translation(Vec3::new(0.0, 0.0, z)),
+            transform,
             geometry: g,
         });
-        depths.push(z);
+        depths.push(transform.translation.z);
     }
     let top_level = TopLevel::build(&library, &descs, BuildParams::BALANCED);
     Stack {
@@ -285,7 +307,100 @@ fn a_shadow_ray_passes_a_thousand_transparent_layers_and_counts_each() {
     let ray = Ray::new(Vec3A::new(0.3, 0.6, 1.0), -Vec3A::Z);
     assert!(!scene.occluded(&ray, &mut stats));
     assert_eq!(stats.filter_rejections, 1000, "one triangle per layer");
+    // Work linear in the layer count: no hidden depth cap, no quadratic revisits.
+    assert!(
+        stats.nodes_visited < 3 * 1000,
+        "{} nodes",
+        stats.nodes_visited
+    );
     assert!(scene.closest(&ray, &mut stats).is_none());
+}
+
+/// A thousand copies of one alpha-masked quad in one place behave as the quad: the same
+/// hits and misses, one transparency segment where it has a hole, and a shadow ray that
+/// may pass one hole passes them all.
+#[test]
+fn a_thousand_coplanar_copies_behave_as_one() {
+    let mut rng = TestRng::new(41);
+    let single = stack_placed(&mut rng, 1, 0.5, 1.0, |_, _| Affine3A::IDENTITY);
+    let mut copies = GeometryLibrary::default();
+    let g = copies.add(Geometry::new("quad", quad(0), BuildParams::BALANCED).unwrap());
+    let descs = vec![
+        InstanceDesc {
+            transform: Affine3A::IDENTITY,
+            geometry: g,
+        };
+        1000
+    ];
+    let thousand = Stack {
+        top_level: TopLevel::build(&copies, &descs, BuildParams::BALANCED),
+        library: copies,
+        shaders: single.shaders.clone(),
+        lights: LightSet::default(),
+        depths: vec![0.0; 1000],
+    };
+    let (one, many) = (single.scene(), thousand.scene());
+    let mut stats = TraversalStats::default();
+    let (mut holes, mut hits) = (0, 0);
+    for y in 0..8 {
+        for x in 0..8 {
+            let (_, ray) = texel_ray(x, y);
+            let expected = one.closest(&ray, &mut TraversalStats::default()).is_some();
+            let before = stats.holes_passed;
+            assert_eq!(many.closest(&ray, &mut stats).is_some(), expected);
+            assert_eq!(stats.holes_passed - before, u64::from(!expected));
+            assert_eq!(many.occluded_within(&ray, Some(1), &mut stats), expected);
+            assert_eq!(many.occluded(&ray, &mut stats), expected);
+            holes += usize::from(!expected);
+            hits += usize::from(expected);
+        }
+    }
+    assert!(holes > 10 && hits > 10, "{holes} holes, {hits} hits");
+}
+
+/// Shadow rays through 8 randomly rotated and shifted layers of random masks pass with
+/// the product of the layers' open fractions (each estimated from the mask alone), within
+/// 3 standard deviations.
+#[test]
+fn random_masks_give_the_expected_transmittance() {
+    let mut rng = TestRng::new(77);
+    let layers = 8;
+    // 10 m quads, masks tiled 20 times (6 cm texels), random yaw and offset.
+    let stack = stack_placed(&mut rng, layers, 0.7, 20.0, |i, rng| {
+        Affine3A::from_translation(Vec3::new(0.0, 0.0, -(i as f32)))
+            * Affine3A::from_rotation_z(rng.range(0.0, std::f32::consts::TAU))
+            * Affine3A::from_translation(Vec3::new(
+                -5.0 + rng.range(-0.3, 0.3),
+                -5.0 + rng.range(-0.3, 0.3),
+                0.0,
+            ))
+            * Affine3A::from_scale(Vec3::splat(10.0))
+    });
+    let mut expected = 1.0f64;
+    for i in 0..layers {
+        let shader = stack.shaders.get(i as u32);
+        let n = 200_000;
+        let open = (0..n)
+            .filter(|_| !shader.is_opaque_at(Vec2::new(rng.f32(), rng.f32())))
+            .count();
+        expected *= open as f64 / n as f64;
+    }
+    let scene = stack.scene();
+    let rays = 40_000;
+    let mut stats = TraversalStats::default();
+    let passed = (0..rays)
+        .filter(|_| {
+            let origin = Vec3A::new(rng.range(-3.0, 3.0), rng.range(-3.0, 3.0), 1.0);
+            !scene.occluded(&Ray::new(origin, -Vec3A::Z), &mut stats)
+        })
+        .count();
+    let measured = passed as f64 / rays as f64;
+    let sigma = (expected * (1.0 - expected) / rays as f64).sqrt();
+    assert!(
+        (measured - expected).abs() < 3.0 * sigma,
+        "transmittance {measured} vs {expected} (sigma {sigma})"
+    );
+    assert!(expected > 0.02, "{expected}");
 }
 
 #[test]

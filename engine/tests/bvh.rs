@@ -42,6 +42,13 @@ fn check_mesh_against_brute_force(mesh: TriangleMesh, rays: &[Ray], params: Buil
             }
             (e, g) => panic!("brute force {e:?} but BVH {g:?} for {ray:?}"),
         }
+        if let Some(h) = got {
+            assert!(
+                h.hit.t.is_finite() && h.hit.barycentrics.is_finite(),
+                "non-finite hit {h:?} for {ray:?}"
+            );
+            assert!((h.hit.barycentrics.element_sum() - 1.0).abs() < 1e-4);
+        }
         assert_eq!(
             geometry.intersect_any(ray, &mut stats, |_, _| true),
             expected.is_some(),
@@ -72,6 +79,61 @@ fn blas_matches_brute_force_for_every_preset() {
             eprintln!("preset {name}, {n} triangles");
             check_mesh_against_brute_force(mesh, &rays, params);
         }
+    }
+}
+
+/// Rays the slab and triangle tests find hardest: axis-aligned with ±0 components,
+/// denormal components, origins exactly on the root's and the triangles' bounding planes,
+/// grazing along triangle edges, and NaN, infinite or zero vectors. Every one must agree
+/// with brute force, give finite t and barycentrics, and never panic.
+#[test]
+fn degenerate_rays_match_brute_force_and_never_give_nan() {
+    let mut rng = TestRng::new(29);
+    let mesh = random_mesh(&mut rng, 400, 2.0, 0.5);
+    let bounds = Aabb::from_points(mesh.positions.iter().map(|&p| Vec3A::from(p)));
+    let mut rays = Vec::new();
+    let zero_directions = [
+        Vec3A::new(0.0, 0.0, 1.0),
+        Vec3A::new(-0.0, 0.0, -1.0),
+        Vec3A::new(0.0, -0.0, 1.0),
+        Vec3A::new(1.0, -0.0, -0.0),
+        Vec3A::new(-0.0, 1.0, 0.0),
+        Vec3A::new(0.0, -1.0, -0.0),
+        Vec3A::new(1e-40, 1.0, -1e-42),
+        Vec3A::new(-1e-45, 1e-39, 1.0),
+        Vec3A::new(1.0, 1e-38, 0.0),
+    ];
+    for _ in 0..200 {
+        let origin = Vec3A::from(rng.vec3(-3.0, 3.0));
+        for d in zero_directions {
+            rays.push(Ray::new(origin, d));
+        }
+        // Origins on the root box's planes, and on triangle bounding planes.
+        let tri = mesh.triangle_bounds((rng.next_u64() % 400) as usize);
+        let mut on_planes = Vec3A::from(rng.vec3(-3.0, 3.0));
+        let axis = (rng.next_u64() % 3) as usize;
+        on_planes[axis] = if rng.f32() < 0.5 {
+            bounds.min[axis]
+        } else {
+            tri.max[axis]
+        };
+        rays.push(Ray::new(on_planes, rng.unit().into()));
+        rays.push(Ray::new(on_planes, zero_directions[axis % 6]));
+        // Grazing: along an edge of a triangle, from just before its first vertex.
+        let [a, b, _] = mesh.triangle((rng.next_u64() % 400) as usize);
+        let edge = (b - a).normalize_or(Vec3A::X);
+        rays.push(Ray::new(a - edge * 0.25, edge));
+        rays.push(Ray::new(a - edge * 0.25 + Vec3A::splat(1e-7), edge));
+    }
+    for bad in [f32::NAN, f32::INFINITY, f32::NEG_INFINITY] {
+        rays.push(Ray::new(Vec3A::new(bad, 0.0, 0.0), Vec3A::Z));
+        rays.push(Ray::new(Vec3A::ZERO, Vec3A::new(0.3, bad, 1.0)));
+        rays.push(Ray::segment(Vec3A::ZERO, Vec3A::Z, bad));
+    }
+    rays.push(Ray::new(Vec3A::ZERO, Vec3A::ZERO));
+    rays.push(Ray::new(Vec3A::ZERO, Vec3A::new(-0.0, 0.0, -0.0)));
+    for (_, params) in BuildParams::PRESETS {
+        check_mesh_against_brute_force(mesh.clone(), &rays, params);
     }
 }
 
