@@ -20,6 +20,7 @@ pub mod metrics;
 pub mod render;
 pub mod sampling;
 pub mod shading;
+pub mod sway;
 pub mod tlas;
 pub mod transparency;
 pub mod triangle;

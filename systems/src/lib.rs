@@ -4,7 +4,8 @@
 //! schedule. Each stage is its own system with a run condition, so a frame that needs
 //! no rebuild, no shader compile or no output does not pay for it:
 //!
-//! 1. `Animate` — reserved for wind sway (nothing runs there yet);
+//! 1. `Animate` — [`animate`] sways plants with a `Sway` component in the `Wind` (only
+//!    when some plant has one), advancing the `AnimationClock` by fixed sub-steps;
 //! 2. `Prepare` — [`rebase_world_origin`] then [`rebuild_top_level`], beside
 //!    [`compile_shaders`] and [`compile_lights`] on the multi-threaded executor;
 //! 3. `Plan` — per camera: [`adaptive_transparency_lod`] (only when the scene has
@@ -192,6 +193,7 @@ pub fn init_render_world(
     world.init_resource::<BuildSettings>();
     world.init_resource::<RenderSeed>();
     world.init_resource::<WorldOrigin>();
+    world.init_resource::<sylva_engine::sway::AnimationClock>();
     world.init_resource::<TileProgress>();
     world.init_resource::<TopLevelState>();
     world.init_resource::<RenderStats>();
@@ -216,6 +218,9 @@ pub fn frame_schedule() -> Schedule {
             .chain(),
     );
     schedule.add_systems((
+        animate
+            .run_if(any_with_component::<sylva_engine::sway::Sway>)
+            .in_set(RenderSystems::Animate),
         (
             rebase_world_origin,
             rebuild_top_level.run_if(instances_changed),

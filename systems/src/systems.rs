@@ -16,6 +16,7 @@ use sylva_engine::light::{DirectionalLight, LightSet, SkyLight};
 use sylva_engine::render::{FramePlan, RenderParams, RenderScene, render_frame};
 use sylva_engine::sampling::mix64;
 use sylva_engine::shading::{Shader, ShaderTable};
+use sylva_engine::sway::{AnimationClock, RestPose, Sway, Wind};
 use sylva_engine::tlas::{InstanceDesc, TopLevel};
 use sylva_engine::transparency::TransparencyCurve;
 
@@ -36,6 +37,40 @@ type RenderedCamera<'a> = (
     &'a Film,
     &'a mut FrameBuffer,
 );
+
+/// Advances the [`AnimationClock`] by its `frame_seconds` in whole sub-steps and sways
+/// every plant with a [`Sway`] in the [`Wind`] (none without a `Wind` resource): its
+/// `Transform` becomes its [`RestPose`] tilted about the base. A wind with NaN or ∞ is
+/// ignored with a warning.
+pub fn animate(
+    mut clock: ResMut<AnimationClock>,
+    wind: Option<Res<Wind>>,
+    mut warned: Local<bool>,
+    mut plants: Query<(&mut Sway, &RestPose, &mut Transform)>,
+) {
+    let _span = tracing::info_span!("animate").entered();
+    let times = clock.advance();
+    if times.is_empty() {
+        return;
+    }
+    let wind = wind.map(|w| *w).filter(|w| {
+        let finite = w.is_finite();
+        if !finite && !*warned {
+            *warned = true;
+            tracing::warn!(?w, "wind with NaN or infinite values ignored");
+        }
+        finite
+    });
+    for (mut sway, rest, mut transform) in &mut plants {
+        let base = rest.0.translation;
+        let position = glam::Vec2::new(base.x, base.z);
+        for &t in &times {
+            let torque = wind.map_or(glam::DVec2::ZERO, |w| w.torque(sway.wind_gain, position, t));
+            sway.substep(torque);
+        }
+        *transform = rest.0.with_rotation(sway.tilt() * rest.0.rotation);
+    }
+}
 
 /// Moves the [`WorldOrigin`] to the grid point nearest the first camera when the camera
 /// has left its cell (which makes the next TLAS build use it).

@@ -317,3 +317,69 @@ fn planning_stages_follow_the_scene_and_restart_accumulation_only_on_change() {
     assert_eq!(plan(&w), FramePlan::default());
     assert_eq!(w.film().frames(), 1);
 }
+
+/// A world with one swaying plant (and its camera), advancing `frame_seconds` per frame.
+fn swaying_world(frame_seconds: f64) -> (TestWorld, Entity) {
+    use sylva_engine::sway::{AnimationClock, RestPose, Sway, Wind};
+    let mut w = test_world(1);
+    let plant = w.plants[2];
+    let rest = *w.world.get::<Transform>(plant).unwrap();
+    let sway = Sway::new(40.0, 1.5, 2.0, 0.05).unwrap();
+    w.world.entity_mut(plant).insert((sway, RestPose(rest)));
+    w.world.insert_resource(Wind::default());
+    w.world.resource_mut::<AnimationClock>().frame_seconds = frame_seconds;
+    (w, plant)
+}
+
+#[test]
+fn sway_gives_the_same_transforms_at_30_and_60_fps() {
+    let (mut at30, plant30) = swaying_world(1.0 / 30.0);
+    let (mut at60, plant60) = swaying_world(1.0 / 60.0);
+    let rest = *at30.world.get::<Transform>(plant30).unwrap();
+    for second in 1..=2 {
+        for _ in 0..30 {
+            at30.run();
+        }
+        for _ in 0..60 {
+            at60.run();
+        }
+        let a = *at30.world.get::<Transform>(plant30).unwrap();
+        let b = *at60.world.get::<Transform>(plant60).unwrap();
+        assert_eq!(a, b, "after {second} s");
+        assert_ne!(a, rest, "the wind moved the plant");
+    }
+    // Every frame moves the plant, so every frame rebuilds the top level.
+    assert_eq!(at30.rebuilds(), 60);
+}
+
+#[test]
+fn a_thousandfold_gust_stays_bounded_and_a_nan_wind_is_ignored() {
+    use sylva_engine::sway::{MAX_TILT, Sway, Wind};
+    let (mut w, plant) = swaying_world(1.0 / 30.0);
+    for _ in 0..10 {
+        w.run();
+    }
+    w.world.resource_mut::<Wind>().strength = 1000.0;
+    w.run();
+    w.world.resource_mut::<Wind>().strength = 1.0;
+    for _ in 0..90 {
+        w.run();
+        let sway = w.world.get::<Sway>(plant).unwrap();
+        assert!(sway.angle.is_finite() && sway.velocity.is_finite());
+        let t = w.world.get::<Transform>(plant).unwrap();
+        assert!(t.rotation.is_finite() && t.rotation.is_normalized());
+        let (_, tilt) = sway.tilt().to_axis_angle();
+        assert!(tilt <= MAX_TILT + 1e-4, "tilt {tilt}");
+    }
+    assert!(w.film().frames() >= 1);
+
+    let before = *w.world.get::<Sway>(plant).unwrap();
+    w.world.resource_mut::<Wind>().speed = f32::NAN;
+    w.run();
+    let after = *w.world.get::<Sway>(plant).unwrap();
+    assert!(after.angle.is_finite() && after.velocity.is_finite());
+    assert!(
+        after.energy() <= before.energy() + 1e-12,
+        "no wind, no energy gained"
+    );
+}
