@@ -5,6 +5,7 @@ use clap::{Args, Parser, Subcommand};
 use indicatif::{ProgressBar, ProgressStyle};
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
+use std::sync::atomic::{AtomicBool, Ordering};
 use std::time::{Duration, Instant};
 use sylva::engine::film::{ImageKind, Tile};
 use sylva::engine::tlas::TopLevel;
@@ -414,6 +415,22 @@ fn parse_duration(text: &str) -> Result<Duration, String> {
     Ok(Duration::from_secs_f64(seconds))
 }
 
+/// Set by the first Ctrl-C (SIGINT/SIGTERM): the render loop then stops after the frame
+/// in progress and writes what has accumulated. A second Ctrl-C exits at once (130).
+fn interrupt_flag() -> Arc<AtomicBool> {
+    let flag = Arc::new(AtomicBool::new(false));
+    let handler_flag = flag.clone();
+    let installed = ctrlc::set_handler(move || {
+        if handler_flag.swap(true, Ordering::SeqCst) {
+            std::process::exit(130);
+        }
+    });
+    if let Err(e) = installed {
+        eprintln!("warning: Ctrl-C will not save the image: {e}");
+    }
+    flag
+}
+
 /// Identifies everything a checkpoint's pixels depend on.
 fn checkpoint_fingerprint(
     args: &RenderArgs,
@@ -545,9 +562,17 @@ fn render(args: RenderArgs) -> Result<()> {
 
     let start = Instant::now();
     let mut schedule = frame_schedule();
+    let interrupted = interrupt_flag();
     loop {
         schedule.run(&mut world);
         let frames = world.get::<Film>(spawned.camera).map_or(0, Film::frames);
+        if interrupted.load(Ordering::SeqCst) {
+            bar.finish_and_clear();
+            eprintln!(
+                "interrupted: writing the {frames} frames accumulated so far (Ctrl-C again to quit without writing)"
+            );
+            break;
+        }
         if args.time.is_some() {
             bar.set_message(format!(
                 "{frames} frames, {} spp",
@@ -579,6 +604,10 @@ fn render(args: RenderArgs) -> Result<()> {
     film.write(&args.out, args.exposure)?;
     if let Some(path) = &args.checkpoint {
         film.write_checkpoint(path, fingerprint)?;
+    }
+    if interrupted.load(Ordering::SeqCst) {
+        eprintln!("wrote {}", args.out.display());
+        std::process::exit(130);
     }
     let render_stats = world.resource::<RenderStats>();
     let tlas = world.resource::<TopLevelState>();

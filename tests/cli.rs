@@ -604,3 +604,69 @@ fn converge_writes_the_csv_the_plot_and_a_table_and_caches_its_reference() {
     assert!(stderr.contains("unknown setting 'fastest'"), "{stderr}");
     std::fs::remove_dir_all(dir).ok();
 }
+
+#[cfg(unix)]
+#[test]
+fn ctrl_c_writes_what_has_accumulated() {
+    let dir = temp_dir("interrupt");
+    let out = dir.join("long.png");
+    let checkpoint = dir.join("long.film");
+    let child = Command::new(env!("CARGO_BIN_EXE_sylva"))
+        .args([
+            "render",
+            "--width",
+            "32",
+            "--height",
+            "24",
+            "--spp",
+            "1",
+            "--frames",
+            "10000000",
+            "--quiet",
+            "--checkpoint",
+            checkpoint.to_str().unwrap(),
+            "--out",
+            out.to_str().unwrap(),
+        ])
+        .stderr(std::process::Stdio::piped())
+        .spawn()
+        .unwrap();
+    // Let it build the scene and render some frames.
+    std::thread::sleep(std::time::Duration::from_millis(2500));
+    let status = Command::new("kill")
+        .args(["-INT", &child.id().to_string()])
+        .status()
+        .unwrap();
+    assert!(status.success());
+    let output = child.wait_with_output().unwrap();
+    let stderr = String::from_utf8_lossy(&output.stderr);
+    assert_eq!(output.status.code(), Some(130), "{stderr}");
+    assert!(stderr.contains("interrupted: writing the"), "{stderr}");
+    let image = image::open(&out).unwrap();
+    assert_eq!((image.width(), image.height()), (32, 24));
+    // The checkpoint holds the frames, so the render can go on from there.
+    let frames: u32 = stderr
+        .split("writing the ")
+        .nth(1)
+        .and_then(|s| s.split_whitespace().next())
+        .and_then(|n| n.parse().ok())
+        .unwrap();
+    assert!(frames >= 1, "{stderr}");
+    succeed(&[
+        "render",
+        "--width",
+        "32",
+        "--height",
+        "24",
+        "--spp",
+        "1",
+        "--frames",
+        &(frames + 1).to_string(),
+        "--quiet",
+        "--resume",
+        checkpoint.to_str().unwrap(),
+        "--out",
+        out.to_str().unwrap(),
+    ]);
+    std::fs::remove_dir_all(dir).ok();
+}
