@@ -68,16 +68,21 @@ impl WatertightRay {
         let cx = c[kx] - sx * c[kz];
         let cy = c[ky] - sy * c[kz];
 
-        let mut e0 = bx * cy - by * cx;
-        let mut e1 = cx * ay - cy * ax;
-        let mut e2 = ax * by - ay * bx;
-        // An edge function of exactly zero is where f32 rounding could let a ray slip
-        // between two triangles: decide those in f64.
-        if e0 == 0.0 || e1 == 0.0 || e2 == 0.0 {
-            e0 = (bx as f64 * cy as f64 - by as f64 * cx as f64) as f32;
-            e1 = (cx as f64 * ay as f64 - cy as f64 * ax as f64) as f32;
-            e2 = (ax as f64 * by as f64 - ay as f64 * bx as f64) as f32;
-        }
+        // Edge functions in f64 from the f32 sheared coordinates: each product is exact
+        // (24 + 24 bits), so every sign is the exact one and a shared edge is decided the
+        // same way for both its triangles. (In f32 the products of tiny coordinates fall
+        // into denormals or to zero and the signs become noise.)
+        let (ax, ay, bx, by, cx, cy) = (
+            f64::from(ax),
+            f64::from(ay),
+            f64::from(bx),
+            f64::from(by),
+            f64::from(cx),
+            f64::from(cy),
+        );
+        let e0 = bx * cy - by * cx;
+        let e1 = cx * ay - cy * ax;
+        let e2 = ax * by - ay * bx;
         if (e0 < 0.0 || e1 < 0.0 || e2 < 0.0) && (e0 > 0.0 || e1 > 0.0 || e2 > 0.0) {
             return None;
         }
@@ -85,38 +90,44 @@ impl WatertightRay {
         if det == 0.0 || !det.is_finite() {
             return None;
         }
-        let az = sz * a[kz];
-        let bz = sz * b[kz];
-        let cz = sz * c[kz];
+        let az = f64::from(sz * a[kz]);
+        let bz = f64::from(sz * b[kz]);
+        let cz = f64::from(sz * c[kz]);
         let t_scaled = e0 * az + e1 * bz + e2 * cz;
-        if det < 0.0 && (t_scaled >= 0.0 || t_scaled < t_max * det) {
+        let t_max64 = f64::from(t_max);
+        if det < 0.0 && (t_scaled >= 0.0 || t_scaled < t_max64 * det) {
             return None;
         }
-        if det > 0.0 && (t_scaled <= 0.0 || t_scaled > t_max * det) {
+        if det > 0.0 && (t_scaled <= 0.0 || t_scaled > t_max64 * det) {
             return None;
         }
         let inv_det = 1.0 / det;
-        let t = t_scaled * inv_det;
+        let t = (t_scaled * inv_det) as f32;
         // Also rejects NaN: a comparison with NaN is false.
         if t.partial_cmp(&t_max) != Some(std::cmp::Ordering::Less) {
             return None;
         }
 
         // Reject hits closer than the error in t (pbrt-v4 §6.8.4): they may lie behind.
+        let g = |n: i32| f64::from(gamma(n));
         let max_zt = az.abs().max(bz.abs()).max(cz.abs());
-        let delta_z = gamma(3) * max_zt;
+        let delta_z = g(3) * max_zt;
         let max_xt = ax.abs().max(bx.abs()).max(cx.abs());
         let max_yt = ay.abs().max(by.abs()).max(cy.abs());
-        let delta_x = gamma(5) * (max_xt + max_zt);
-        let delta_y = gamma(5) * (max_yt + max_zt);
-        let delta_e = 2.0 * (gamma(2) * max_xt * max_yt + delta_y * max_xt + delta_x * max_yt);
+        let delta_x = g(5) * (max_xt + max_zt);
+        let delta_y = g(5) * (max_yt + max_zt);
+        let delta_e = 2.0 * (g(2) * max_xt * max_yt + delta_y * max_xt + delta_x * max_yt);
         let max_e = e0.abs().max(e1.abs()).max(e2.abs());
         let delta_t =
-            3.0 * (gamma(3) * max_e * max_zt + delta_e * max_zt + delta_z * max_e) * inv_det.abs();
-        if t <= delta_t {
+            3.0 * (g(3) * max_e * max_zt + delta_e * max_zt + delta_z * max_e) * inv_det.abs();
+        if f64::from(t) <= delta_t || t <= 0.0 {
             return None;
         }
-        let barycentrics = Vec3A::new(e0, e1, e2) * inv_det;
+        let barycentrics = Vec3A::new(
+            (e0 * inv_det) as f32,
+            (e1 * inv_det) as f32,
+            (e2 * inv_det) as f32,
+        );
         if !barycentrics.is_finite() {
             return None;
         }

@@ -137,6 +137,37 @@ fn degenerate_rays_match_brute_force_and_never_give_nan() {
     }
 }
 
+/// Inputs the `bvh_vs_brute_force` fuzz target once failed on (`fuzz/regressions/`),
+/// decoded as it decodes them: 6 floats of ray, then triangles of 9 floats.
+#[test]
+fn fuzz_regressions_match_brute_force() {
+    let dir = std::path::Path::new(env!("CARGO_MANIFEST_DIR"))
+        .join("../fuzz/regressions/bvh_vs_brute_force");
+    let mut checked = 0;
+    for entry in std::fs::read_dir(&dir).unwrap() {
+        let data = std::fs::read(entry.unwrap().path()).unwrap();
+        let floats: Vec<f32> = data
+            .chunks_exact(4)
+            .map(|c| f32::from_le_bytes([c[0], c[1], c[2], c[3]]))
+            .collect();
+        let (r, soup) = floats.split_at(6);
+        let mut mesh = TriangleMesh::default();
+        for (i, t) in soup.chunks_exact(9).take(64).enumerate() {
+            for k in 0..3 {
+                mesh.positions
+                    .push(Vec3::new(t[3 * k], t[3 * k + 1], t[3 * k + 2]));
+            }
+            let b = 3 * i as u32;
+            mesh.indices.push([b, b + 1, b + 2]);
+            mesh.shaders.push(0);
+        }
+        let ray = Ray::new(Vec3A::new(r[0], r[1], r[2]), Vec3A::new(r[3], r[4], r[5]));
+        check_mesh_against_brute_force(mesh, &[ray], BuildParams::BALANCED);
+        checked += 1;
+    }
+    assert!(checked >= 1);
+}
+
 #[test]
 fn parallel_build_equals_sequential_build() {
     let mut rng = TestRng::new(5);

@@ -326,23 +326,28 @@ fn decode_image(
             }
         }
     };
-    let reader = image::ImageReader::new(std::io::Cursor::new(&bytes))
-        .with_guessed_format()
-        .map_err(|e| importer.error(at.clone(), e.to_string()))?;
-    let (width, height) = reader
+    decode_texture(&bytes).map_err(|message| importer.error(at, message))
+}
+
+/// Decodes a PNG or JPEG texture (sRGB colour, grey + alpha kept as such), checking its
+/// dimensions (edges 1 … `MAX_TEXTURE_EDGE`) before allocating for its pixels.
+pub fn decode_texture(bytes: &[u8]) -> Result<Texture, String> {
+    let reader = || {
+        image::ImageReader::new(std::io::Cursor::new(bytes))
+            .with_guessed_format()
+            .map_err(|e| e.to_string())
+    };
+    let (width, height) = reader()?
         .into_dimensions()
-        .map_err(|e| importer.error(at.clone(), format!("cannot decode image: {e}")))?;
+        .map_err(|e| format!("cannot decode image: {e}"))?;
     if width == 0 || height == 0 || width > MAX_TEXTURE_EDGE || height > MAX_TEXTURE_EDGE {
-        return Err(importer.error(
-            at,
-            format!("image is {width}×{height}; edges must lie in 1 … {MAX_TEXTURE_EDGE}"),
+        return Err(format!(
+            "image is {width}×{height}; edges must lie in 1 … {MAX_TEXTURE_EDGE}"
         ));
     }
-    let decoded = image::ImageReader::new(std::io::Cursor::new(&bytes))
-        .with_guessed_format()
-        .map_err(|e| importer.error(at.clone(), e.to_string()))?
+    let decoded = reader()?
         .decode()
-        .map_err(|e| importer.error(at.clone(), format!("cannot decode image: {e}")))?;
+        .map_err(|e| format!("cannot decode image: {e}"))?;
     let texture = match decoded {
         image::DynamicImage::ImageLumaA8(img) => {
             let texels: Vec<[u8; 2]> = img.pixels().map(|p| p.0).collect();
@@ -353,7 +358,7 @@ fn decode_image(
             Texture::from_srgba8(width, height, rgba.pixels().map(|p| p.0).collect())
         }
     };
-    texture.map_err(|e| importer.error(at, e.to_string()))
+    texture.map_err(|e| e.to_string())
 }
 
 /// Reads an accessor fully, or names it in an error.
@@ -719,14 +724,29 @@ impl GltfScene {
     /// mirrored instances get their winding flipped so fronts stay fronts.
     pub fn bake(&self) -> SpeciesModel {
         let mut mesh = TriangleMesh::default();
-        for instance in &self.instances {
+        for (index, instance) in self.instances.iter().enumerate() {
             let source = &self.meshes[instance.mesh].mesh;
             let m = instance.transform;
+            let positions: Vec<Vec3> = source
+                .positions
+                .iter()
+                .map(|&p| m.transform_point3(p))
+                .collect();
+            // A transform that overflows (huge scales in a node chain) would put ∞ into
+            // the mesh: leave that instance out rather than the whole model.
+            if !positions.iter().all(|p| p.is_finite()) {
+                tracing::warn!(
+                    "{}: instance {index} of mesh {} left out of the baked model: its transform \
+                     gives non-finite positions",
+                    self.path.display(),
+                    instance.mesh
+                );
+                continue;
+            }
             let normal_matrix = m.matrix3.inverse().transpose();
             let mirrored = m.matrix3.determinant() < 0.0;
             let base = mesh.positions.len() as u32;
-            mesh.positions
-                .extend(source.positions.iter().map(|&p| m.transform_point3(p)));
+            mesh.positions.extend(positions);
             mesh.normals.extend(
                 source
                     .normals

@@ -539,3 +539,26 @@ fn cameras_are_chosen_by_name_or_index_and_missing_ones_are_errors() {
         "the framing view looks at the model from +Z"
     );
 }
+
+/// Inputs the `gltf_import` fuzz target once failed on (`fuzz/regressions/`): each is an
+/// error or a model whose baked positions are all finite.
+#[test]
+fn fuzz_regressions_import_cleanly_or_fail_with_an_error() {
+    let dir = Path::new(env!("CARGO_MANIFEST_DIR")).join("../fuzz/regressions/gltf_import");
+    let mut checked = 0;
+    for entry in std::fs::read_dir(&dir).unwrap() {
+        let path = entry.unwrap().path();
+        let data = std::fs::read(&path).unwrap();
+        if let Ok(scene) = sylva_scenes::gltf::import_slice(&data, Path::new("/nonexistent/f.glb"))
+        {
+            let model = scene.bake();
+            assert!(
+                model.mesh.positions.iter().all(|p| p.is_finite()),
+                "{}",
+                path.display()
+            );
+        }
+        checked += 1;
+    }
+    assert!(checked >= 1);
+}
