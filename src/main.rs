@@ -431,6 +431,62 @@ fn interrupt_flag() -> Arc<AtomicBool> {
     flag
 }
 
+/// What an output image records about how it was made (PNG tEXt / EXR attributes).
+fn image_metadata(
+    args: &RenderArgs,
+    film: &Film,
+    width: u32,
+    spp: u32,
+    light_samples: u32,
+    transparency: Option<TransparencyCurve>,
+    interleave: LightInterleave,
+) -> Vec<(String, String)> {
+    let curve = transparency.map_or("off".to_string(), |c| {
+        format!(
+            "{},{},{},{},{}",
+            c.near, c.far, c.depth_near, c.depth_far, c.weight
+        )
+    });
+    [
+        ("Software", format!("sylva {}", env!("CARGO_PKG_VERSION"))),
+        ("sylva.scene", scene_label(&args.scene)),
+        ("sylva.seed", args.scene.seed.to_string()),
+        ("sylva.size", format!("{width}x{}", args.height)),
+        ("sylva.frames", film.frames().to_string()),
+        (
+            "sylva.spp",
+            (u64::from(film.frames()) * u64::from(spp)).to_string(),
+        ),
+        ("sylva.spp_per_frame", spp.to_string()),
+        ("sylva.light_samples", light_samples.to_string()),
+        ("sylva.adaptive_transparency", curve),
+        (
+            "sylva.interleave",
+            format!(
+                "{} ({} subsets)",
+                interleave.pattern,
+                interleave.subset_count()
+            ),
+        ),
+        (
+            "sylva.environment",
+            args.env
+                .as_ref()
+                .map_or("scene sun and sky".to_string(), |p| {
+                    format!("{} ({} lights)", p.display(), args.lights)
+                }),
+        ),
+        ("sylva.exposure", args.exposure.to_string()),
+        (
+            "sylva.rejected_samples",
+            film.rejected_samples().to_string(),
+        ),
+    ]
+    .into_iter()
+    .map(|(k, v)| (k.to_string(), v))
+    .collect()
+}
+
 /// Identifies everything a checkpoint's pixels depend on.
 fn checkpoint_fingerprint(
     args: &RenderArgs,
@@ -585,7 +641,9 @@ fn render(args: RenderArgs) -> Result<()> {
             let film = world
                 .get::<Film>(spawned.camera)
                 .expect("cameras have films");
-            film.write(&snapshot_path(&args.out, frames), args.exposure)?;
+            let metadata =
+                image_metadata(&args, film, width, spp, samples, transparency, interleave);
+            film.write_with(&snapshot_path(&args.out, frames), args.exposure, &metadata)?;
         }
         let done = match args.time {
             Some(budget) => start.elapsed() >= budget || frames >= args.frames.unwrap_or(u32::MAX),
@@ -601,7 +659,8 @@ fn render(args: RenderArgs) -> Result<()> {
     let film = world
         .get::<Film>(spawned.camera)
         .ok_or_else(|| anyhow::anyhow!("the camera has no film"))?;
-    film.write(&args.out, args.exposure)?;
+    let metadata = image_metadata(&args, film, width, spp, samples, transparency, interleave);
+    film.write_with(&args.out, args.exposure, &metadata)?;
     if let Some(path) = &args.checkpoint {
         film.write_checkpoint(path, fingerprint)?;
     }

@@ -670,3 +670,72 @@ fn ctrl_c_writes_what_has_accumulated() {
     ]);
     std::fs::remove_dir_all(dir).ok();
 }
+
+#[test]
+fn output_images_record_how_they_were_made() {
+    let dir = temp_dir("metadata");
+    let png_path = dir.join("m.png");
+    let exr_path = dir.join("m.exr");
+    for out in [&png_path, &exr_path] {
+        succeed(&[
+            "render",
+            "--width",
+            "16",
+            "--height",
+            "12",
+            "--spp",
+            "2",
+            "--frames",
+            "3",
+            "--seed",
+            "5",
+            "--quiet",
+            "--out",
+            out.to_str().unwrap(),
+        ]);
+    }
+    let decoder = png::Decoder::new(std::io::BufReader::new(
+        std::fs::File::open(&png_path).unwrap(),
+    ));
+    let reader = decoder.read_info().unwrap();
+    let text: std::collections::HashMap<String, String> = reader
+        .info()
+        .uncompressed_latin1_text
+        .iter()
+        .map(|t| (t.keyword.clone(), t.text.clone()))
+        .collect();
+    assert_eq!(
+        text.get("sylva.spp").map(String::as_str),
+        Some("6"),
+        "{text:?}"
+    );
+    assert_eq!(text.get("sylva.seed").map(String::as_str), Some("5"));
+    assert_eq!(text.get("sylva.scene").map(String::as_str), Some("meadow"));
+    assert!(
+        text.get("Software")
+            .is_some_and(|s| s.starts_with("sylva "))
+    );
+
+    let meta = exr::meta::MetaData::read_from_file(&exr_path, false).unwrap();
+    // The exr crate reads unknown text attributes back as layer attributes.
+    let header = &meta.headers[0];
+    let other: Vec<_> = header
+        .own_attributes
+        .other
+        .iter()
+        .chain(&header.shared_attributes.other)
+        .collect();
+    let value = |key: &str| {
+        other
+            .iter()
+            .find(|(k, _)| format!("{k}") == key)
+            .map(|(_, v)| format!("{v:?}"))
+            .unwrap_or_default()
+    };
+    assert!(value("sylva.spp").contains('6'), "{other:?}");
+    assert!(
+        value("sylva.adaptive_transparency").contains("off"),
+        "{other:?}"
+    );
+    std::fs::remove_dir_all(dir).ok();
+}

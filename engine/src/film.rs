@@ -368,37 +368,77 @@ impl Film {
 
     /// Writes a tone-mapped PNG, atomically (temporary file, then rename).
     pub fn write_png(&self, path: &Path, exposure: f32) -> Result<(), OutputError> {
+        self.write_png_with(path, exposure, &[])
+    }
+
+    /// [`write_png`](Self::write_png) with `metadata` as tEXt chunks (keywords of 1–79
+    /// Latin-1 characters; others are left out).
+    pub fn write_png_with(
+        &self,
+        path: &Path,
+        exposure: f32,
+        metadata: &[(String, String)],
+    ) -> Result<(), OutputError> {
         let pixels = self.to_srgba8(exposure);
         write_atomically(path, |tmp| {
-            image::save_buffer_with_format(
-                tmp,
-                &pixels,
-                self.width,
-                self.height,
-                image::ExtendedColorType::Rgba8,
-                image::ImageFormat::Png,
-            )
-            .map_err(|e| e.to_string())
+            let file = std::fs::File::create(tmp).map_err(|e| e.to_string())?;
+            let mut encoder =
+                png::Encoder::new(std::io::BufWriter::new(file), self.width, self.height);
+            encoder.set_color(png::ColorType::Rgba);
+            encoder.set_depth(png::BitDepth::Eight);
+            for (key, value) in metadata {
+                // A keyword the format cannot hold is skipped rather than failing the image.
+                let _ = encoder.add_text_chunk(key.clone(), value.clone());
+            }
+            let mut writer = encoder.write_header().map_err(|e| e.to_string())?;
+            writer
+                .write_image_data(&pixels)
+                .map_err(|e| e.to_string())?;
+            writer.finish().map_err(|e| e.to_string())
         })
     }
 
     /// Writes linear mean radiance as an RGBA f32 EXR, atomically.
-    #[cfg(feature = "exr")]
     pub fn write_exr(&self, path: &Path) -> Result<(), OutputError> {
+        self.write_exr_with(path, &[])
+    }
+
+    /// [`write_exr`](Self::write_exr) with `metadata` as text attributes of the header.
+    #[cfg(feature = "exr")]
+    pub fn write_exr_with(
+        &self,
+        path: &Path,
+        metadata: &[(String, String)],
+    ) -> Result<(), OutputError> {
+        use exr::prelude::*;
         let mean = self.mean_rgb();
         let width = self.width as usize;
         write_atomically(path, |tmp| {
-            exr::prelude::write_rgba_file(tmp, width, self.height as usize, |x, y| {
-                let [r, g, b] = mean[y * width + x];
+            let channels = SpecificChannels::rgba(|pos: Vec2<usize>| {
+                let [r, g, b] = mean[pos.y() * width + pos.x()];
                 (r, g, b, 1.0f32)
-            })
-            .map_err(|e| e.to_string())
+            });
+            let mut image = Image::from_channels((width, self.height as usize), channels);
+            for (key, value) in metadata {
+                if let (Some(key), Some(value)) = (Text::new_or_none(key), Text::new_or_none(value))
+                {
+                    image
+                        .attributes
+                        .other
+                        .insert(key, exr::meta::attribute::AttributeValue::Text(value));
+                }
+            }
+            image.write().to_file(tmp).map_err(|e| e.to_string())
         })
     }
 
     /// Without the `exr` feature: an error saying how to get EXR output.
     #[cfg(not(feature = "exr"))]
-    pub fn write_exr(&self, path: &Path) -> Result<(), OutputError> {
+    pub fn write_exr_with(
+        &self,
+        path: &Path,
+        _metadata: &[(String, String)],
+    ) -> Result<(), OutputError> {
         Err(OutputError::FeatureDisabled {
             path: path.to_owned(),
             feature: "exr",
@@ -407,9 +447,20 @@ impl Film {
 
     /// Writes PNG or EXR by the path's extension.
     pub fn write(&self, path: &Path, exposure: f32) -> Result<(), OutputError> {
+        self.write_with(path, exposure, &[])
+    }
+
+    /// [`write`](Self::write) with `metadata` (key, value) pairs stored in the file: PNG
+    /// tEXt chunks or EXR header attributes.
+    pub fn write_with(
+        &self,
+        path: &Path,
+        exposure: f32,
+        metadata: &[(String, String)],
+    ) -> Result<(), OutputError> {
         match ImageKind::from_path(path)? {
-            ImageKind::Png => self.write_png(path, exposure),
-            ImageKind::Exr => self.write_exr(path),
+            ImageKind::Png => self.write_png_with(path, exposure, metadata),
+            ImageKind::Exr => self.write_exr_with(path, metadata),
         }
     }
 }

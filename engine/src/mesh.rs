@@ -47,6 +47,51 @@ pub enum MeshError {
 }
 
 impl TriangleMesh {
+    /// A closed UV sphere of radius about 1 whose ring vertices are moved radially by up
+    /// to ±`jitter` (seeded); triangles share vertices by index, so it stays watertight.
+    /// Watertightness tests and the leak benchmark aim rays at its edges and vertices.
+    pub fn jittered_sphere(rings: u32, segments: u32, jitter: f32, seed: u64) -> Self {
+        let (rings, segments) = (rings.max(2), segments.max(3));
+        let mut rng = crate::sampling::SplitMix64(seed);
+        let mut mesh = TriangleMesh::default();
+        mesh.positions.push(Vec3::Y);
+        for r in 1..rings {
+            let theta = std::f32::consts::PI * r as f32 / rings as f32;
+            for s in 0..segments {
+                let phi = std::f32::consts::TAU * s as f32 / segments as f32;
+                let radius = rng.range(1.0 - jitter, 1.0 + jitter);
+                let direction = Vec3::new(
+                    theta.sin() * phi.cos(),
+                    theta.cos(),
+                    theta.sin() * phi.sin(),
+                );
+                mesh.positions.push(direction * radius);
+            }
+        }
+        mesh.positions.push(-Vec3::Y);
+        let bottom = mesh.positions.len() as u32 - 1;
+        let ring = |r: u32, s: u32| 1 + (r - 1) * segments + s % segments;
+        for s in 0..segments {
+            mesh.indices.push([0, ring(1, s + 1), ring(1, s)]);
+            mesh.indices
+                .push([bottom, ring(rings - 1, s), ring(rings - 1, s + 1)]);
+        }
+        for r in 1..rings - 1 {
+            for s in 0..segments {
+                let (a, b, c, d) = (
+                    ring(r, s),
+                    ring(r, s + 1),
+                    ring(r + 1, s),
+                    ring(r + 1, s + 1),
+                );
+                mesh.indices.push([a, b, d]);
+                mesh.indices.push([a, d, c]);
+            }
+        }
+        mesh.shaders = vec![0; mesh.indices.len()];
+        mesh
+    }
+
     /// Number of triangles.
     pub fn triangle_count(&self) -> usize {
         self.indices.len()

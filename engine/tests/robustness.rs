@@ -4,56 +4,13 @@
 mod common;
 
 use common::*;
-use glam::{Affine3A, Vec3, Vec3A};
+use glam::{Affine3A, Vec3A};
 use sylva_engine::bvh::{BuildParams, TraversalStats};
 use sylva_engine::geometry::{Geometry, GeometryId, GeometryLibrary};
 use sylva_engine::math::Ray;
 use sylva_engine::mesh::TriangleMesh;
 use sylva_engine::tlas::{InstanceDesc, TopLevel};
 use sylva_engine::triangle::hit_point;
-
-/// A closed UV sphere whose vertices are jittered radially (still closed: triangles
-/// share vertices by index).
-fn jittered_sphere(rng: &mut TestRng, rings: u32, segments: u32) -> TriangleMesh {
-    let mut mesh = TriangleMesh::default();
-    mesh.positions.push(Vec3::Y);
-    for r in 1..rings {
-        let theta = std::f32::consts::PI * r as f32 / rings as f32;
-        for s in 0..segments {
-            let phi = std::f32::consts::TAU * s as f32 / segments as f32;
-            let radius = rng.range(0.9, 1.1);
-            mesh.positions.push(
-                Vec3::new(
-                    theta.sin() * phi.cos(),
-                    theta.cos(),
-                    theta.sin() * phi.sin(),
-                ) * radius,
-            );
-        }
-    }
-    mesh.positions.push(-Vec3::Y);
-    let bottom = mesh.positions.len() as u32 - 1;
-    let ring = |r: u32, s: u32| 1 + (r - 1) * segments + s % segments;
-    for s in 0..segments {
-        mesh.indices.push([0, ring(1, s + 1), ring(1, s)]);
-        mesh.indices
-            .push([bottom, ring(rings - 1, s), ring(rings - 1, s + 1)]);
-    }
-    for r in 1..rings - 1 {
-        for s in 0..segments {
-            let (a, b, c, d) = (
-                ring(r, s),
-                ring(r, s + 1),
-                ring(r + 1, s),
-                ring(r + 1, s + 1),
-            );
-            mesh.indices.push([a, b, d]);
-            mesh.indices.push([a, d, c]);
-        }
-    }
-    mesh.shaders = vec![0; mesh.indices.len()];
-    mesh
-}
 
 /// Rays from `origin` aimed exactly at every vertex and at points on every edge; returns
 /// (rays, leaks).
@@ -96,7 +53,7 @@ fn rays_at_shared_edges_and_vertices_never_leak() {
     lib.add(
         Geometry::new(
             "sphere",
-            jittered_sphere(&mut rng, 40, 64),
+            TriangleMesh::jittered_sphere(40, 64, 0.1, rng.next_u64()),
             BuildParams::BALANCED,
         )
         .unwrap(),
@@ -148,7 +105,7 @@ fn spawned_rays_never_rehit_their_own_triangle() {
     lib.add(
         Geometry::new(
             "sphere",
-            jittered_sphere(&mut rng, 12, 16),
+            TriangleMesh::jittered_sphere(12, 16, 0.1, rng.next_u64()),
             BuildParams::BALANCED,
         )
         .unwrap(),
