@@ -303,6 +303,11 @@ fn decode_image(
     role: &str,
 ) -> Result<Texture, GltfError> {
     let at = format!("images[{}] ({role})", image.index());
+    // gltf's `Image::source` panics on an image with neither a URI nor a buffer view.
+    let raw = &importer.document.as_json().images[image.index()];
+    if raw.uri.is_none() && raw.buffer_view.is_none() {
+        return Err(importer.error(at, "the image has neither a uri nor a bufferView"));
+    }
     let bytes: Vec<u8> = match image.source() {
         gltf::image::Source::View { view, .. } => {
             let data = importer

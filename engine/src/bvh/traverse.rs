@@ -67,6 +67,8 @@ impl TraversalStats {
 pub struct NodeRay {
     origin: [Vec4; 3],
     inv_dir: [Vec4; 3],
+    /// Some direction component is ±0 (its reciprocal is infinite).
+    axis_parallel: bool,
 }
 
 /// Widening of the far slab distance that makes the box test conservative (Ize 2013,
@@ -85,6 +87,7 @@ impl NodeRay {
                 Vec4::splat(ray.origin.z),
             ],
             inv_dir: [Vec4::splat(inv.x), Vec4::splat(inv.y), Vec4::splat(inv.z)],
+            axis_parallel: !inv.is_finite(),
         }
     }
 
@@ -100,6 +103,23 @@ impl NodeRay {
         let y1 = (node.max_y - oy) * iy;
         let z0 = (node.min_z - oz) * iz;
         let z1 = (node.max_z - oz) * iz;
+        let [x0, x1, y0, y1, z0, z1] = if self.axis_parallel {
+            // 0 · ∞ is NaN where the origin lies on a face of a slab the ray runs
+            // parallel to: that slab does not limit the ray (the face counts as inside,
+            // as the watertight triangle test counts edges).
+            let open = |a: Vec4, b: Vec4| {
+                let a = Vec4::select(a.cmpeq(a), a, -b);
+                let b = Vec4::select(b.cmpeq(b), b, -a);
+                (
+                    Vec4::select(a.cmpeq(a), a, Vec4::NEG_INFINITY),
+                    Vec4::select(b.cmpeq(b), b, Vec4::INFINITY),
+                )
+            };
+            let ((x0, x1), (y0, y1), (z0, z1)) = (open(x0, x1), open(y0, y1), open(z0, z1));
+            [x0, x1, y0, y1, z0, z1]
+        } else {
+            [x0, x1, y0, y1, z0, z1]
+        };
         let t_near = x0.min(x1).max(y0.min(y1)).max(z0.min(z1)).max(Vec4::ZERO);
         let t_far = x0.max(x1).min(y0.max(y1)).min(z0.max(z1)) * FAR_SCALE;
         let hit = t_near.cmple(t_far) & t_near.cmplt(Vec4::splat(t_max));
