@@ -166,3 +166,51 @@ fn spawned_rays_never_rehit_their_own_triangle() {
     assert!(checked > 5000, "too few hits to test ({checked})");
     assert_eq!(self_hits, 0);
 }
+
+/// Rays aimed at the vertices of a fine sphere (160 k triangles) from inside: around a
+/// vertex some triangles are seen nearly edge-on, and an f32 error bound on t once threw
+/// their hits away as "possibly behind" (tens of leaks per 10⁷ rays; `cargo bench
+/// --bench leaks` measures 10⁷).
+#[test]
+fn nearly_edge_on_triangles_around_a_vertex_do_not_leak() {
+    let mesh = TriangleMesh::jittered_sphere(200, 400, 0.1, 7);
+    let mut lib = GeometryLibrary::default();
+    lib.add(Geometry::new("sphere", mesh.clone(), BuildParams::BALANCED).unwrap());
+    let transform = Affine3A::from_rotation_translation(
+        glam::Quat::from_scaled_axis(glam::Vec3::new(0.4, 1.1, -0.3)),
+        glam::Vec3::ZERO,
+    );
+    let tlas = TopLevel::build(
+        &lib,
+        &[InstanceDesc {
+            transform,
+            geometry: GeometryId(0),
+        }],
+        BuildParams::BALANCED,
+    );
+    let mut rng = sylva_engine::sampling::SplitMix64(3);
+    let inside = Vec3A::new(
+        rng.range(-0.4, 0.4),
+        rng.range(-0.4, 0.4),
+        rng.range(-0.4, 0.4),
+    );
+    let origin = transform.transform_point3a(inside);
+    let mut stats = TraversalStats::default();
+    let leaks = mesh
+        .positions
+        .iter()
+        .filter(|&&p| {
+            let target = transform.transform_point3a(p.into());
+            tlas.intersect_closest(&lib, &Ray::new(origin, target - origin), &mut stats, |_| {
+                true
+            })
+            .is_none()
+        })
+        .count();
+    assert_eq!(
+        leaks,
+        0,
+        "{leaks} of {} vertex rays leaked",
+        mesh.positions.len()
+    );
+}
