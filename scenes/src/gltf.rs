@@ -147,7 +147,32 @@ pub fn import_slice(bytes: &[u8], path: &Path) -> Result<GltfScene, GltfError> {
         location,
         message,
     };
-    let gltf = gltf::Gltf::from_slice(bytes)
+    // gltf-json 1.4's validation indexes a primitive's POSITION accessor before checking
+    // it exists and panics on such files: check that first, and keep any other panic in
+    // the dependency from escaping as one.
+    let unchecked = gltf::Gltf::from_slice_without_validation(bytes)
+        .map_err(|e| fail(None, format!("not a valid glTF/GLB file: {e}")))?;
+    let root = unchecked.document.as_json();
+    for (m, mesh) in root.meshes.iter().enumerate() {
+        for (p, primitive) in mesh.primitives.iter().enumerate() {
+            for (semantic, accessor) in &primitive.attributes {
+                if accessor.value() >= root.accessors.len() {
+                    return Err(fail(
+                        Some(format!(
+                            "meshes[{m}].primitives[{p}].attributes.{semantic:?}"
+                        )),
+                        format!(
+                            "accessor {} does not exist ({} accessors)",
+                            accessor.value(),
+                            root.accessors.len()
+                        ),
+                    ));
+                }
+            }
+        }
+    }
+    let gltf = std::panic::catch_unwind(|| gltf::Gltf::from_slice(bytes))
+        .map_err(|_| fail(None, "malformed glTF (the gltf crate failed on it)".into()))?
         .map_err(|e| fail(None, format!("not a valid glTF/GLB file: {e}")))?;
     let base = path.parent().unwrap_or(Path::new("."));
     for buffer in gltf.document.buffers() {
