@@ -44,6 +44,14 @@ pub enum MeshError {
         /// The required length.
         expected: usize,
     },
+    /// A vertex position is NaN or infinite (the BVH could not bound it).
+    #[error("vertex {vertex} has a non-finite position {position}")]
+    NonFinitePosition {
+        /// The vertex.
+        vertex: usize,
+        /// Its position.
+        position: Vec3,
+    },
 }
 
 impl TriangleMesh {
@@ -115,6 +123,14 @@ impl TriangleMesh {
                 found: self.shaders.len(),
                 expected: self.indices.len(),
             });
+        }
+        if let Some((vertex, &position)) = self
+            .positions
+            .iter()
+            .enumerate()
+            .find(|(_, p)| !p.is_finite())
+        {
+            return Err(MeshError::NonFinitePosition { vertex, position });
         }
         for (triangle, tri) in self.indices.iter().enumerate() {
             if let Some(&index) = tri.iter().find(|&&i| i as usize >= v) {

@@ -162,7 +162,15 @@ fn fuzz_regressions_match_brute_force() {
             mesh.shaders.push(0);
         }
         let ray = Ray::new(Vec3A::new(r[0], r[1], r[2]), Vec3A::new(r[3], r[4], r[5]));
-        check_mesh_against_brute_force(mesh, &[ray], BuildParams::BALANCED);
+        if mesh.positions.iter().all(|p| p.is_finite()) {
+            check_mesh_against_brute_force(mesh, &[ray], BuildParams::BALANCED);
+        } else {
+            // Non-finite vertices are refused before any BVH is built.
+            assert!(matches!(
+                Geometry::new("fuzz", mesh, BuildParams::BALANCED),
+                Err(sylva_engine::mesh::MeshError::NonFinitePosition { .. })
+            ));
+        }
         checked += 1;
     }
     assert!(checked >= 1);

@@ -4,7 +4,7 @@
 
 use super::{Bvh, WideNode};
 use crate::math::{Ray, gamma};
-use glam::Vec4;
+use glam::{Vec3A, Vec4};
 
 /// Counters a traversal updates: cheap enough to leave on in release builds. Summed per
 /// tile, then per frame.
@@ -87,7 +87,11 @@ impl NodeRay {
                 Vec4::splat(ray.origin.z),
             ],
             inv_dir: [Vec4::splat(inv.x), Vec4::splat(inv.y), Vec4::splat(inv.z)],
-            axis_parallel: !inv.is_finite(),
+            // A NaN ray hits nothing either way; only finite rays get open slabs.
+            axis_parallel: !inv.is_finite()
+                && ray.origin.is_finite()
+                && !ray.direction.is_nan()
+                && ray.direction != Vec3A::ZERO,
         }
     }
 
