@@ -150,7 +150,9 @@ pub fn import_slice(bytes: &[u8], path: &Path) -> Result<GltfScene, GltfError> {
     // gltf-json 1.4's validation indexes a primitive's POSITION accessor before checking
     // it exists and panics on such files: check that first, and keep any other panic in
     // the dependency from escaping as one.
-    let unchecked = gltf::Gltf::from_slice_without_validation(bytes)
+    let malformed = || fail(None, "malformed glTF (the gltf crate failed on it)".into());
+    let unchecked = std::panic::catch_unwind(|| gltf::Gltf::from_slice_without_validation(bytes))
+        .map_err(|_| malformed())?
         .map_err(|e| fail(None, format!("not a valid glTF/GLB file: {e}")))?;
     let root = unchecked.document.as_json();
     for (m, mesh) in root.meshes.iter().enumerate() {
@@ -172,7 +174,7 @@ pub fn import_slice(bytes: &[u8], path: &Path) -> Result<GltfScene, GltfError> {
         }
     }
     let gltf = std::panic::catch_unwind(|| gltf::Gltf::from_slice(bytes))
-        .map_err(|_| fail(None, "malformed glTF (the gltf crate failed on it)".into()))?
+        .map_err(|_| malformed())?
         .map_err(|e| fail(None, format!("not a valid glTF/GLB file: {e}")))?;
     let base = path.parent().unwrap_or(Path::new("."));
     for buffer in gltf.document.buffers() {
