@@ -52,7 +52,20 @@ impl WideNode {
         }
     }
 
+    /// Stores lane `lane`'s box grown outward by a few ulps, so the f32 slab test stays
+    /// conservative against the watertight triangle test, which accepts hits within its
+    /// own rounding of a face (a ray starting on a bound and leaving it at a denormal rate
+    /// was culled at 10¹² m). Growth is monotone, so nested boxes stay nested.
     fn set_box(&mut self, lane: usize, b: Aabb) {
+        const GROWTH: f32 = 1.0 / (1 << 21) as f32;
+        let grow = |v: Vec3A, outward: f32| {
+            (v + (v.abs() * GROWTH + Vec3A::splat(f32::MIN_POSITIVE)) * outward)
+                .clamp(Vec3A::splat(f32::MIN), Vec3A::splat(f32::MAX))
+        };
+        let b = Aabb {
+            min: grow(b.min, -1.0),
+            max: grow(b.max, 1.0),
+        };
         self.min_x[lane] = b.min.x;
         self.min_y[lane] = b.min.y;
         self.min_z[lane] = b.min.z;
