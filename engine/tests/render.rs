@@ -22,6 +22,17 @@ struct Fixture {
     lights: LightSet,
 }
 
+impl Fixture {
+    fn scene(&self) -> RenderScene<'_> {
+        RenderScene {
+            geometry: &self.library,
+            top_level: &self.top_level,
+            shaders: &self.shaders,
+            lights: &self.lights,
+        }
+    }
+}
+
 fn fixture() -> Fixture {
     let mut rng = TestRng::new(4);
     let mut library = GeometryLibrary::default();
@@ -109,12 +120,7 @@ fn view_from(camera: &Camera, eye: Vec3) -> CameraView {
 #[test]
 fn tile_order_and_thread_count_do_not_change_a_bit() {
     let f = fixture();
-    let scene = RenderScene {
-        geometry: &f.library,
-        top_level: &f.top_level,
-        shaders: &f.shaders,
-        lights: &f.lights,
-    };
+    let scene = f.scene();
     let camera = Camera {
         width: 57,
         height: 41,
@@ -207,12 +213,7 @@ fn injected_nan_samples_are_counted_and_never_reach_the_film() {
         f.shaders.get(1).clone(),
         Shader::color(ShaderId(2), Vec3::new(f32::NAN, 0.3, 0.1)),
     ]);
-    let scene = RenderScene {
-        geometry: &f.library,
-        top_level: &f.top_level,
-        shaders: &f.shaders,
-        lights: &f.lights,
-    };
+    let scene = f.scene();
     let camera = Camera {
         width: 64,
         height: 48,
