@@ -1,5 +1,5 @@
 //! BVH build speed: a 1 M-triangle BLAS, and the TLAS over 10 k, 100 k and 365 k
-//! instances (the paper's count), on a 2-thread pool.
+//! instances (the paper's count), built and refitted, on a 2-thread pool.
 
 mod support;
 
@@ -69,10 +69,27 @@ fn tlas(c: &mut Criterion) {
             })
             .collect();
         group.throughput(Throughput::Elements(count as u64));
-        group.bench_with_input(BenchmarkId::from_parameter(count), &descs, |b, descs| {
+        group.bench_with_input(BenchmarkId::new("build", count), &descs, |b, descs| {
             b.iter(|| {
                 pool.install(|| TopLevel::build(&meadow.library, descs, BuildParams::BALANCED))
             })
+        });
+        // A refit to the same instances each tilted by 0.1 rad about its base.
+        let tilted: Vec<InstanceDesc> = descs
+            .iter()
+            .map(|d| InstanceDesc {
+                transform: Affine3A::from_translation(d.transform.translation.into())
+                    * Affine3A::from_rotation_x(0.1)
+                    * Affine3A::from_translation(-Vec3::from(d.transform.translation))
+                    * d.transform,
+                ..*d
+            })
+            .collect();
+        let built =
+            pool.install(|| TopLevel::build(&meadow.library, &descs, BuildParams::BALANCED));
+        group.bench_with_input(BenchmarkId::new("refit", count), &tilted, |b, tilted| {
+            let mut top_level = built.clone();
+            b.iter(|| pool.install(|| top_level.refit(&meadow.library, tilted).unwrap()))
         });
     }
     group.finish();

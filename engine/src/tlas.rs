@@ -69,6 +69,106 @@ pub struct TopLevel {
     pub bvh: Bvh,
     /// What the last build left out.
     pub skipped: SkippedInstances,
+    /// Number of instance descriptions the last build was given.
+    pub source_count: usize,
+    /// The caller's indices of the instances not in the tree (left out, or of empty
+    /// meshes or overflowing boxes), in order.
+    pub outside: Vec<u32>,
+    /// [`Bvh::sah_cost`] of the tree when it was built over the summed area of its
+    /// instances' boxes (refits do not change it).
+    pub built_sah_cost: f64,
+    /// The same after the latest refit (0 until one).
+    pub current_sah_cost: f64,
+    /// Slot boxes of the refit in progress, kept to reuse the allocation.
+    refit_scratch: Vec<Aabb>,
+}
+
+/// Why [`TopLevel::refit`] refused; the TLAS is unchanged and must be rebuilt instead.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum RefitRefusal {
+    /// Not as many instances as the last build was given.
+    InstanceCount {
+        /// Instances at the last build.
+        built: usize,
+        /// Instances given to the refit.
+        given: usize,
+    },
+    /// The instance (the caller's index) now points at another geometry.
+    GeometryChanged {
+        /// The caller's index of the instance.
+        instance: u32,
+    },
+    /// The instance became unusable (singular or non-finite) or usable: the set of
+    /// instances in the tree would change.
+    UsableSetChanged {
+        /// The caller's index of the instance.
+        instance: u32,
+    },
+}
+
+impl std::fmt::Display for RefitRefusal {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        match self {
+            RefitRefusal::InstanceCount { built, given } => {
+                write!(f, "{given} instances given, the tree was built for {built}")
+            }
+            RefitRefusal::GeometryChanged { instance } => {
+                write!(f, "instance {instance} points at another geometry")
+            }
+            RefitRefusal::UsableSetChanged { instance } => write!(
+                f,
+                "instance {instance} became usable or unusable (singular, non-finite or empty)"
+            ),
+        }
+    }
+}
+
+impl std::error::Error for RefitRefusal {}
+
+/// Why an instance cannot enter the tree.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+enum Unusable {
+    Singular,
+    UnknownGeometry,
+}
+
+/// An instance's world box and record, or why it is left out.
+type Prepared = Result<(Aabb, InstanceRecord), Unusable>;
+
+fn prepare(library: &GeometryLibrary, id: u32, desc: &InstanceDesc) -> Prepared {
+    let geometry = library
+        .get(desc.geometry)
+        .ok_or(Unusable::UnknownGeometry)?;
+    let det = desc.transform.matrix3.determinant();
+    if !desc.transform.is_finite() || det == 0.0 || !det.is_finite() {
+        return Err(Unusable::Singular);
+    }
+    let world_to_object = desc.transform.inverse();
+    if !world_to_object.is_finite() {
+        return Err(Unusable::Singular);
+    }
+    let record = InstanceRecord {
+        object_to_world: desc.transform,
+        world_to_object,
+        geometry: desc.geometry,
+        id,
+    };
+    Ok((geometry.bounds().transformed(&desc.transform), record))
+}
+
+/// Summed surface area of instance boxes (at least the smallest positive f64, so a ratio
+/// of costs stays finite).
+fn primitive_area<'a>(boxes: impl Iterator<Item = &'a Aabb>) -> f64 {
+    boxes
+        .map(|b| b.surface_area() as f64)
+        .sum::<f64>()
+        .max(f64::MIN_POSITIVE)
+}
+
+/// The test [`Bvh::build`] applies to keep a box: instances of empty meshes, or whose
+/// world box overflowed, cannot be hit.
+fn is_hittable(bounds: &Aabb) -> bool {
+    !bounds.is_empty() && bounds.min.is_finite() && bounds.max.is_finite()
 }
 
 impl TopLevel {
@@ -80,52 +180,133 @@ impl TopLevel {
         instances: &[InstanceDesc],
         params: BuildParams,
     ) -> TopLevel {
-        let prepared: Vec<(Aabb, Option<InstanceRecord>, u8)> = instances
+        let prepared: Vec<Prepared> = instances
             .par_iter()
             .enumerate()
-            .map(|(i, desc)| {
-                let Some(geometry) = library.get(desc.geometry) else {
-                    return (Aabb::EMPTY, None, 2);
-                };
-                let det = desc.transform.matrix3.determinant();
-                if !desc.transform.is_finite() || det == 0.0 || !det.is_finite() {
-                    return (Aabb::EMPTY, None, 1);
-                }
-                let world_to_object = desc.transform.inverse();
-                if !world_to_object.is_finite() {
-                    return (Aabb::EMPTY, None, 1);
-                }
-                let record = InstanceRecord {
-                    object_to_world: desc.transform,
-                    world_to_object,
-                    geometry: desc.geometry,
-                    id: i as u32,
-                };
-                (
-                    geometry.bounds().transformed(&desc.transform),
-                    Some(record),
-                    0,
-                )
-            })
+            .map(|(i, desc)| prepare(library, i as u32, desc))
             .collect();
         let skipped = SkippedInstances {
-            singular: prepared.iter().filter(|p| p.2 == 1).count(),
-            unknown_geometry: prepared.iter().filter(|p| p.2 == 2).count(),
+            singular: prepared
+                .iter()
+                .filter(|p| matches!(p, Err(Unusable::Singular)))
+                .count(),
+            unknown_geometry: prepared
+                .iter()
+                .filter(|p| matches!(p, Err(Unusable::UnknownGeometry)))
+                .count(),
             ids: (0..prepared.len() as u32)
-                .filter(|&i| prepared[i as usize].2 != 0)
+                .filter(|&i| prepared[i as usize].is_err())
                 .collect(),
         };
-        let bounds: Vec<Aabb> = prepared.iter().map(|p| p.0).collect();
+        let bounds: Vec<Aabb> = prepared
+            .iter()
+            .map(|p| p.as_ref().map_or(Aabb::EMPTY, |p| p.0))
+            .collect();
         let bvh = Bvh::build(&bounds, params);
         let instances = bvh
             .prim_indices
             .iter()
-            .map(|&i| prepared[i as usize].1.expect("BVH keeps only valid boxes"))
+            .map(|&i| prepared[i as usize].expect("BVH keeps only valid boxes").1)
             .collect();
+        let mut in_tree = vec![false; prepared.len()];
+        for &i in &bvh.prim_indices {
+            in_tree[i as usize] = true;
+        }
+        let outside = (0..prepared.len() as u32)
+            .filter(|&i| !in_tree[i as usize])
+            .collect();
+        let built_sah_cost =
+            bvh.sah_cost() / primitive_area(bvh.prim_indices.iter().map(|&i| &bounds[i as usize]));
         TopLevel {
             instances,
             bvh,
             skipped,
+            source_count: prepared.len(),
+            outside,
+            built_sah_cost,
+            current_sah_cost: built_sah_cost,
+            refit_scratch: Vec::new(),
+        }
+    }
+
+    /// Moves the instances of the last build to `instances` (the same list, in the same
+    /// order, with new transforms) keeping the tree's topology: boxes are refitted
+    /// bottom-up in a linear pass instead of a SAH build. Returns the tree's SAH cost
+    /// over its cost when built (1 = as good as built; rebuild when it has grown).
+    ///
+    /// Refuses, changing nothing, when the list differs in length, an instance points at
+    /// another geometry, or the set of instances that can be hit would change (a
+    /// transform became singular or a left-out one became usable): those need a build.
+    pub fn refit(
+        &mut self,
+        library: &GeometryLibrary,
+        instances: &[InstanceDesc],
+    ) -> Result<f32, RefitRefusal> {
+        if instances.len() != self.source_count {
+            return Err(RefitRefusal::InstanceCount {
+                built: self.source_count,
+                given: instances.len(),
+            });
+        }
+        // First check every slot, writing only scratch boxes, so a refusal leaves the
+        // tree as it was; then move the records in place (recomputing the inverses is
+        // cheaper than holding a second copy of every record).
+        let mut slot_bounds = std::mem::take(&mut self.refit_scratch);
+        slot_bounds.resize(self.instances.len(), Aabb::EMPTY);
+        let checked = slot_bounds
+            .par_iter_mut()
+            .zip(self.instances.par_iter())
+            .try_for_each(|(out, record)| {
+                let instance = record.id;
+                match prepare(library, instance, &instances[instance as usize]) {
+                    Ok((_, moved)) if moved.geometry != record.geometry => {
+                        Err(RefitRefusal::GeometryChanged { instance })
+                    }
+                    Ok((bounds, _)) if is_hittable(&bounds) => {
+                        *out = bounds;
+                        Ok(())
+                    }
+                    _ => Err(RefitRefusal::UsableSetChanged { instance }),
+                }
+            })
+            .and_then(|()| {
+                let newcomer = self.outside.par_iter().find_any(|&&instance| {
+                    prepare(library, instance, &instances[instance as usize])
+                        .is_ok_and(|(bounds, _)| is_hittable(&bounds))
+                });
+                match newcomer {
+                    Some(&instance) => Err(RefitRefusal::UsableSetChanged { instance }),
+                    None => Ok(()),
+                }
+            });
+        if let Err(refusal) = checked {
+            self.refit_scratch = slot_bounds;
+            return Err(refusal);
+        }
+        self.bvh
+            .refit(&slot_bounds)
+            .expect("every slot box was checked finite and non-empty");
+        self.instances.par_iter_mut().for_each(|record| {
+            let id = record.id;
+            *record = prepare(library, id, &instances[id as usize])
+                .expect("checked above")
+                .1;
+        });
+        self.current_sah_cost = self.bvh.sah_cost() / primitive_area(slot_bounds.iter());
+        self.refit_scratch = slot_bounds;
+        Ok(self.degradation())
+    }
+
+    /// The tree's SAH cost over its cost when last built, each per unit of instance box
+    /// area: 1 right after a build, growing as refits move instances away from the layout
+    /// the tree was built for. Dividing by the instances' own box area keeps boxes that
+    /// merely grew (a plant tilting in the wind) from counting as degradation, while a
+    /// plant moved far away or instances trading places still do.
+    pub fn degradation(&self) -> f32 {
+        if self.built_sah_cost > 0.0 && self.current_sah_cost > 0.0 {
+            (self.current_sah_cost / self.built_sah_cost) as f32
+        } else {
+            1.0
         }
     }
 

@@ -160,10 +160,14 @@ fn plants_are_spawned_moved_and_despawned_one_by_one() {
         "it stands on the ground"
     );
 
-    let rebuilds = world.resource::<TopLevelState>().rebuilds;
+    let updates = |world: &World| {
+        let state = world.resource::<TopLevelState>();
+        state.rebuilds + state.refits
+    };
+    let before_move = updates(&world);
     assert!(move_plant(&mut world, plant, -4.0, 2.0, 0.0, 1.0));
     schedule.run(&mut world);
-    assert_eq!(world.resource::<TopLevelState>().rebuilds, rebuilds + 1);
+    assert_eq!(updates(&world), before_move + 1, "one refit or rebuild");
     let moved = world.get::<Transform>(plant).unwrap().translation;
     assert_eq!((moved.x, moved.z), (-4.0, 2.0));
     let record = world

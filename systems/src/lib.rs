@@ -6,7 +6,8 @@
 //!
 //! 1. `Animate` — [`animate`] sways plants with a `Sway` component in the `Wind` (only
 //!    when some plant has one), advancing the `AnimationClock` by fixed sub-steps;
-//! 2. `Prepare` — [`rebase_world_origin`] then [`rebuild_top_level`], beside
+//! 2. `Prepare` — [`rebase_world_origin`] then [`rebuild_top_level`] (a refit when only
+//!    transforms moved and the tree has not degraded), beside
 //!    [`compile_shaders`] and [`compile_lights`] on the multi-threaded executor;
 //! 3. `Plan` — per camera: [`adaptive_transparency_lod`] (only when the scene has
 //!    alpha-masked shaders) and [`assign_light_subsets`] (only when it has virtual
@@ -87,10 +88,28 @@ impl RenderPool {
 }
 
 /// BVH build settings for both levels.
-#[derive(Resource, Clone, Copy, Debug, Default, PartialEq)]
+#[derive(Resource, Clone, Copy, Debug, PartialEq)]
 pub struct BuildSettings {
-    /// Settings of the top level, rebuilt whenever instances change.
+    /// Settings of the top level, built whenever the set of instances changes.
     pub top_level: BuildParams,
+    /// When only transforms changed, the top level is refitted instead of rebuilt while
+    /// its SAH cost stays within this multiple of its cost when built (see
+    /// `benches/README.md` for the measurement behind the default); 0 rebuilds always.
+    pub refit_limit: f32,
+}
+
+impl BuildSettings {
+    /// Default [`refit_limit`](Self::refit_limit).
+    pub const REFIT_LIMIT: f32 = 1.2;
+}
+
+impl Default for BuildSettings {
+    fn default() -> Self {
+        Self {
+            top_level: BuildParams::default(),
+            refit_limit: Self::REFIT_LIMIT,
+        }
+    }
 }
 
 /// Where the renderer's coordinate origin sits in the world. Instances and cameras are
@@ -143,8 +162,16 @@ pub struct TileProgress(pub Option<TileCallback>);
 pub struct TopLevelState {
     /// Rebuilds since the world was set up.
     pub rebuilds: u64,
+    /// Rebuilds made because a refit had degraded the tree past the refit limit.
+    pub degraded_rebuilds: u64,
+    /// Refits since the world was set up.
+    pub refits: u64,
     /// Duration of the latest rebuild.
     pub last_build: Duration,
+    /// Duration of the latest refit.
+    pub last_refit: Duration,
+    /// SAH cost of the current tree over its cost when built (1 after a build).
+    pub degradation: f32,
     /// `entities[id]` is the plant entity of TLAS instance id `id`.
     pub entities: Vec<Entity>,
     /// True once the warning about coarse far-away positions has been given.

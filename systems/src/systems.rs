@@ -97,7 +97,10 @@ pub fn instances_changed(
     removed > 0 || !changed.is_empty() || library.is_changed() || origin.is_changed()
 }
 
-/// Rebuilds the TLAS from every visible plant, on the render pool.
+/// Brings the TLAS up to date with every visible plant, on the render pool: a refit when
+/// the same plants only moved (same entities, same geometry, same library) and the
+/// refitted tree's SAH cost stays within [`BuildSettings::refit_limit`] of its cost when
+/// built; a full build otherwise.
 pub fn rebuild_top_level(
     pool: Res<RenderPool>,
     library: Res<GeometryLibrary>,
@@ -134,6 +137,25 @@ pub fn rebuild_top_level(
             f32::EPSILON * farthest * 1e3
         );
     }
+    let may_refit = settings.refit_limit > 1.0
+        && !library.is_changed()
+        && !top_level.is_empty()
+        && entities == state.entities;
+    if may_refit {
+        match pool.install(|| top_level.refit(&library, &descs)) {
+            Ok(degradation) if degradation <= settings.refit_limit => {
+                state.refits += 1;
+                state.last_refit = start.elapsed();
+                state.degradation = degradation;
+                return;
+            }
+            Ok(degradation) => {
+                tracing::debug!(degradation, "top level degraded by refits: rebuilding");
+                state.degraded_rebuilds += 1;
+            }
+            Err(refusal) => tracing::debug!(%refusal, "top level cannot be refitted"),
+        }
+    }
     let built = pool.install(|| TopLevel::build(&library, &descs, settings.top_level));
     if !built.skipped.ids.is_empty() {
         let named: Vec<String> = built
@@ -159,6 +181,7 @@ pub fn rebuild_top_level(
     state.entities = entities;
     state.rebuilds += 1;
     state.last_build = start.elapsed();
+    state.degradation = 1.0;
 }
 
 /// Run condition of [`compile_shaders`].

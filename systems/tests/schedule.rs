@@ -94,6 +94,9 @@ impl TestWorld {
     fn rebuilds(&self) -> u64 {
         self.world.resource::<TopLevelState>().rebuilds
     }
+    fn refits(&self) -> u64 {
+        self.world.resource::<TopLevelState>().refits
+    }
     fn film(&self) -> &Film {
         self.world.get::<Film>(self.camera).unwrap()
     }
@@ -147,12 +150,30 @@ fn moving_one_plant_rebuilds_once_and_resets_accumulation() {
         .translation
         .x += 0.5;
     w.run();
-    assert_eq!(w.rebuilds(), 2, "moving one plant runs exactly one rebuild");
+    assert_eq!(
+        (w.rebuilds(), w.refits()),
+        (1, 1),
+        "moving one plant a little runs exactly one refit"
+    );
     assert_eq!(w.film().frames(), 1, "accumulation restarted");
     assert_eq!(w.film().resets(), resets + 1);
     w.run();
-    assert_eq!(w.rebuilds(), 2);
+    assert_eq!((w.rebuilds(), w.refits()), (1, 1));
     assert_eq!(w.film().frames(), 2);
+    // Far away, the plant's old leaf would span the scene: the refitted tree degrades past
+    // the limit and is rebuilt.
+    w.world
+        .get_mut::<Transform>(w.plants[2])
+        .unwrap()
+        .translation
+        .z -= 500.0;
+    w.run();
+    let state = w.world.resource::<TopLevelState>();
+    assert_eq!(
+        (state.rebuilds, state.refits, state.degraded_rebuilds),
+        (2, 1, 1)
+    );
+    assert_eq!(state.degradation, 1.0);
 }
 
 #[test]
@@ -348,8 +369,60 @@ fn sway_gives_the_same_transforms_at_30_and_60_fps() {
         assert_eq!(a, b, "after {second} s");
         assert_ne!(a, rest, "the wind moved the plant");
     }
-    // Every frame moves the plant, so every frame rebuilds the top level.
-    assert_eq!(at30.rebuilds(), 60);
+    // Every frame moves the plant, so every frame updates the top level: one build,
+    // then refits.
+    assert_eq!((at30.rebuilds(), at30.refits()), (1, 59));
+}
+
+/// A world whose five plants all sway, refitting the top level up to `refit_limit`.
+fn swaying_plants(refit_limit: f32) -> TestWorld {
+    use sylva_engine::sway::{AnimationClock, RestPose, Sway, Wind};
+    let mut w = test_world(2);
+    w.world.resource_mut::<BuildSettings>().refit_limit = refit_limit;
+    for (i, &plant) in w.plants.iter().enumerate() {
+        let rest = *w.world.get::<Transform>(plant).unwrap();
+        let sway = Sway::new(20.0 + 10.0 * i as f64, 1.0, 2.0, 0.2).unwrap();
+        w.world.entity_mut(plant).insert((sway, RestPose(rest)));
+    }
+    w.world.insert_resource(Wind {
+        strength: 20.0,
+        ..Wind::default()
+    });
+    w.world.resource_mut::<AnimationClock>().frame_seconds = 1.0 / 30.0;
+    w
+}
+
+#[test]
+fn a_refitted_top_level_renders_what_a_rebuilt_one_renders() {
+    let mut refitting = swaying_plants(BuildSettings::REFIT_LIMIT);
+    let mut rebuilding = swaying_plants(0.0);
+    for frame in 0..30 {
+        refitting.run();
+        rebuilding.run();
+        assert_eq!(
+            refitting.film().mean_rgb(),
+            rebuilding.film().mean_rgb(),
+            "frame {frame}"
+        );
+    }
+    assert_eq!((rebuilding.rebuilds(), rebuilding.refits()), (30, 0));
+    let state = refitting.world.resource::<TopLevelState>();
+    assert_eq!(state.rebuilds + state.refits, 30);
+    assert!(state.refits >= 20, "{state:?}");
+    assert!(state.degradation <= BuildSettings::REFIT_LIMIT);
+    let moved = refitting
+        .plants
+        .iter()
+        .filter(|&&p| {
+            let rest = refitting
+                .world
+                .get::<sylva_engine::sway::RestPose>(p)
+                .unwrap();
+            (refitting.world.get::<Transform>(p).unwrap().rotation).angle_between(rest.0.rotation)
+                > 0.01
+        })
+        .count();
+    assert!(moved >= 3, "the wind must move the plants: {moved}");
 }
 
 #[test]

@@ -5,12 +5,14 @@
 
 mod build;
 mod node;
+mod refit;
 mod traverse;
 mod validate;
 mod wide;
 
 pub use build::BuildParams;
 pub use node::BvhNode;
+pub use refit::RefitError;
 pub use traverse::{NodeRay, TraversalStats};
 pub use validate::BvhReport;
 pub use wide::WideNode;
