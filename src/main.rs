@@ -481,6 +481,7 @@ fn image_metadata(
             "sylva.rejected_samples",
             film.rejected_samples().to_string(),
         ),
+        ("sylva.fireflies", film.fireflies().to_string()),
     ]
     .into_iter()
     .map(|(k, v)| (k.to_string(), v))
@@ -681,7 +682,7 @@ fn render(args: RenderArgs) -> Result<()> {
     if !args.quiet {
         let rendered = render_stats.frames;
         println!(
-            "{}: {}x{}, {} frames at {} spp ({} spp in all) -> {}\n  {} instances, {} instanced triangles ({} unique), BLAS build {:.2} s, TLAS build {:.1} ms, scene generation {:.2} s\n  render {:.2} s ({:.3} s per frame), {:.2} M rays/s ({} camera + {} shadow rays), {:.2} transparency segments per camera ray ({:.2} holes tested), {} holes made opaque, total {:.2} s",
+            "{}: {}x{}, {} frames at {} spp ({} spp in all) -> {}\n  {} instances, {} instanced triangles ({} unique), BLAS build {:.2} s, TLAS build {:.1} ms, scene generation {:.2} s\n  render {:.2} s ({:.3} s per frame), {:.2} M rays/s ({} camera + {} shadow rays), {:.2} transparency segments per camera ray ({:.2} holes tested), {} holes made opaque, {} fireflies (pixel-frames over {}x their pixel's mean), total {:.2} s",
             scene_label(&args.scene),
             width,
             args.height,
@@ -703,6 +704,8 @@ fn render(args: RenderArgs) -> Result<()> {
             render_stats.total.segments_per_closest_ray(),
             render_stats.total.hole_tests_per_closest_ray(),
             group(render_stats.total.opaque_holes),
+            group(film.fireflies()),
+            sylva::engine::film::FIREFLY_RATIO,
             wall.as_secs_f64(),
         );
     }

@@ -134,7 +134,20 @@ pub struct Film {
     frames: u32,
     rejected: u64,
     resets: u64,
+    fireflies: u64,
     resume_pending: bool,
+}
+
+/// A frame's pixel counts as a firefly when its luminance exceeds this multiple of the
+/// pixel's accumulated mean (see [`Film::fireflies`]).
+pub const FIREFLY_RATIO: f64 = 20.0;
+
+/// Frames a pixel must have accumulated before a frame can be judged a firefly against
+/// its mean.
+pub const FIREFLY_MIN_FRAMES: u32 = 4;
+
+fn luminance64(rgb: [f64; 3]) -> f64 {
+    0.2126 * rgb[0] + 0.7152 * rgb[1] + 0.0722 * rgb[2]
 }
 
 /// Why a checkpoint could not be used.
@@ -185,6 +198,7 @@ impl Film {
             frames: 0,
             rejected: 0,
             resets: 0,
+            fireflies: 0,
             resume_pending: false,
         }
     }
@@ -292,6 +306,15 @@ impl Film {
         self.rejected
     }
 
+    /// Fireflies seen since the last reset (not kept in checkpoints): frames whose pixel
+    /// value was more than [`FIREFLY_RATIO`] times that pixel's mean so far, counted
+    /// once the film holds [`FIREFLY_MIN_FRAMES`] frames. They are counted, not clamped
+    /// (clamping would bias the estimate); a count that stays high says the lighting
+    /// needs more light samples or the scene an outlier.
+    pub fn fireflies(&self) -> u64 {
+        self.fireflies
+    }
+
     /// How many times accumulation restarted (a change of camera or scene).
     pub fn resets(&self) -> u64 {
         self.resets
@@ -309,6 +332,9 @@ impl Film {
         if frame.frame_index == 0 || frame.width != self.width || frame.height != self.height {
             self.reset(frame.width, frame.height);
         }
+        if self.frames >= FIREFLY_MIN_FRAMES {
+            self.fireflies += self.count_fireflies(frame);
+        }
         for ((sum, count), (s, &c)) in self
             .sums
             .iter_mut()
@@ -323,6 +349,25 @@ impl Film {
         self.frames += 1;
         self.rejected += frame.rejected;
         self.resume_pending = false;
+    }
+
+    /// Pixels of `frame` brighter than [`FIREFLY_RATIO`] times their accumulated mean.
+    fn count_fireflies(&self, frame: &FrameBuffer) -> u64 {
+        let mut found = 0;
+        for ((sum, &count), (s, &c)) in self
+            .sums
+            .iter()
+            .zip(&self.counts)
+            .zip(frame.sums.iter().zip(&frame.counts))
+        {
+            if c == 0 || count == 0 {
+                continue;
+            }
+            let mean = luminance64(*sum) / count as f64;
+            let value = luminance64([s.x as f64, s.y as f64, s.z as f64]) / c as f64;
+            found += u64::from(value > FIREFLY_RATIO * mean.max(0.0) && value > 0.0);
+        }
+        found
     }
 
     /// Adds one sample to one pixel (for tests and tools that splat).
@@ -589,6 +634,34 @@ mod tests {
         }
         assert_eq!(film.pixel(0, 0), [1.0; 3]);
         assert_eq!(film.counts[0], 1 << 25);
+    }
+
+    #[test]
+    fn a_pixel_far_above_its_mean_is_counted_as_a_firefly() {
+        let mut film = Film::new(3, 1);
+        let frame_of = |index: u32, values: [f32; 3]| {
+            let mut frame = FrameBuffer::new(3, 1, index);
+            for (i, v) in values.into_iter().enumerate() {
+                frame.sums[i] = Vec3::splat(v * 2.0);
+                frame.counts[i] = 2;
+            }
+            frame
+        };
+        // Too early to judge: the first frames set the mean.
+        film.accumulate(&frame_of(0, [1.0, 1.0, 0.0]));
+        film.accumulate(&frame_of(1, [500.0, 1.0, 0.0]));
+        assert_eq!(film.fireflies(), 0);
+        for i in 2..6 {
+            film.accumulate(&frame_of(i, [1.0, 1.0, 0.0]));
+        }
+        assert_eq!(film.fireflies(), 0, "steady pixels are not fireflies");
+        let mean = film.pixel(1, 0)[0];
+        // Just below the ratio, far above it, and light on a pixel dark so far.
+        let just_below = (FIREFLY_RATIO * mean * 0.99) as f32;
+        film.accumulate(&frame_of(6, [1e6, just_below, 0.5]));
+        assert_eq!(film.fireflies(), 2);
+        film.accumulate(&frame_of(0, [1.0, 1.0, 1.0]));
+        assert_eq!(film.fireflies(), 0, "a restart forgets them");
     }
 
     #[test]

@@ -203,3 +203,36 @@ fn a_sun_a_million_times_brighter_gives_bounded_samples() {
     assert!(max_luminance <= bound * 1.001, "{max_luminance} > {bound}");
     assert!(luminance(mean) > 0.0 && mean.is_finite());
 }
+
+#[test]
+fn a_sun_up_to_a_million_times_brighter_makes_no_fireflies_on_an_open_plane() {
+    use sylva_engine::film::{Film, FrameBuffer};
+    let plane = Plane::new();
+    let ray = Ray::new(Vec3A::new(0.0, 2.0, 0.0), -Vec3A::Y);
+    let frames = 256;
+    // A dim sun leaves the sky most of the light, a bright one takes nearly all: either
+    // way luminance-proportional picking keeps every sample within a cosine factor of
+    // the mean. A picker blind to the sun's share (uniform over the 256 lights) would
+    // give about one sample in 256 a value 256 × the sun's share: a firefly.
+    for sun in [1.0, 1e2, 1e6] {
+        let environment = Arc::new(EnvironmentLight::new(test_map(sun), 256));
+        let film = plane.lit_by(environment, |scene| {
+            let mut film = Film::new(1, 1);
+            let mut stats = TraversalStats::default();
+            for k in 0..frames {
+                let key = SampleKey::new(3, 0, 0, k, 0);
+                let shading = SampleShading::plain(1);
+                let value = Vec3::from(scene.radiance(&ray, &key, &shading, &mut stats));
+                let mut frame = FrameBuffer::new(1, 1, k);
+                frame.sums[0] = value;
+                frame.counts[0] = 1;
+                film.accumulate(&frame);
+            }
+            film
+        });
+        assert_eq!(film.frames(), frames);
+        assert_eq!(film.rejected_samples(), 0);
+        assert!(film.pixel(0, 0).iter().all(|c| c.is_finite() && *c > 0.0));
+        assert_eq!(film.fireflies(), 0, "sun {sun}");
+    }
+}
