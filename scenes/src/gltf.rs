@@ -323,6 +323,12 @@ fn base64_decode(text: &str) -> Option<Vec<u8>> {
     Some(out)
 }
 
+/// Where an image's bytes are.
+enum ImageSource<'a> {
+    View(gltf::buffer::View<'a>),
+    Uri(&'a str),
+}
+
 fn decode_image(
     importer: &Importer,
     image: &gltf::Image,
@@ -330,13 +336,25 @@ fn decode_image(
     role: &str,
 ) -> Result<Texture, GltfError> {
     let at = format!("images[{}] ({role})", image.index());
-    // gltf's `Image::source` panics on an image with neither a URI nor a buffer view.
+    // Read the source from the JSON: gltf's `Image::source` unwraps a missing uri, a
+    // missing mimeType beside a bufferView, and a bufferView index out of range.
     let raw = &importer.document.as_json().images[image.index()];
-    if raw.uri.is_none() && raw.buffer_view.is_none() {
-        return Err(importer.error(at, "the image has neither a uri nor a bufferView"));
-    }
-    let bytes: Vec<u8> = match image.source() {
-        gltf::image::Source::View { view, .. } => {
+    let source = match (&raw.buffer_view, &raw.uri) {
+        (Some(view), _) => {
+            let view = importer
+                .document
+                .views()
+                .nth(view.value())
+                .ok_or_else(|| importer.error(at.clone(), "bufferView index out of range"))?;
+            ImageSource::View(view)
+        }
+        (None, Some(uri)) => ImageSource::Uri(uri.as_str()),
+        (None, None) => {
+            return Err(importer.error(at, "the image has neither a uri nor a bufferView"));
+        }
+    };
+    let bytes: Vec<u8> = match source {
+        ImageSource::View(view) => {
             let data = importer
                 .buffers
                 .get(view.buffer().index())
@@ -344,7 +362,7 @@ fn decode_image(
                 .ok_or_else(|| importer.error(at.clone(), "buffer view out of range"))?;
             data.to_vec()
         }
-        gltf::image::Source::Uri { uri, .. } => {
+        ImageSource::Uri(uri) => {
             if let Some(rest) = uri.strip_prefix("data:") {
                 let payload = rest.split_once(";base64,").map(|(_, p)| p);
                 payload

@@ -67,7 +67,8 @@ impl TraversalStats {
 pub struct NodeRay {
     origin: [Vec4; 3],
     inv_dir: [Vec4; 3],
-    /// Some direction component is ±0 (its reciprocal is infinite).
+    /// Some direction component is ±0 (its reciprocal is infinite) or so small that its
+    /// reciprocal overflows (then NaN): such slabs get the open treatment.
     axis_parallel: bool,
 }
 
@@ -79,7 +80,13 @@ impl NodeRay {
     /// Splats origin and reciprocal direction across the four lanes.
     #[inline]
     pub fn new(ray: &Ray) -> Self {
-        let inv = ray.direction.recip();
+        // A non-zero component below 1/f32::MAX (a denormal) has an infinite reciprocal,
+        // which would put its slab entry at ±∞ although the ray does cross the slab, at a
+        // distance f32 cannot hold (fuzz finding). NaN marks that slab as open: the test
+        // ignores the axis, a conservative superset that only such rays pay for.
+        let d = ray.direction;
+        let unreliable = d.cmpne(Vec3A::ZERO) & !d.recip().is_finite_mask();
+        let inv = Vec3A::select(unreliable, Vec3A::NAN, d.recip());
         Self {
             origin: [
                 Vec4::splat(ray.origin.x),
@@ -110,7 +117,8 @@ impl NodeRay {
         let [x0, x1, y0, y1, z0, z1] = if self.axis_parallel {
             // 0 · ∞ is NaN where the origin lies on a face of a slab the ray runs
             // parallel to: that slab does not limit the ray (the face counts as inside,
-            // as the watertight triangle test counts edges).
+            // as the watertight triangle test counts edges). A NaN reciprocal (a
+            // denormal direction component) makes both distances NaN: the slab is open.
             let open = |a: Vec4, b: Vec4| {
                 let a = Vec4::select(a.cmpeq(a), a, -b);
                 let b = Vec4::select(b.cmpeq(b), b, -a);
