@@ -491,6 +491,35 @@ fn mesh(
                     .and_then(|t| t.tex_coord())
                     .unwrap_or(i.tex_coord())
             });
+        // gltf's reader assumes the types the specification allows and misreads (or, with
+        // debug assertions, panics on) others: check them first (fuzz finding).
+        use gltf::accessor::{DataType, Dimensions};
+        if let Some(a) = primitive.get(&gltf::Semantic::TexCoords(set))
+            && (a.dimensions() != Dimensions::Vec2
+                || !matches!(a.data_type(), DataType::F32 | DataType::U8 | DataType::U16))
+        {
+            return Err(importer.error(
+                format!("{at}.attributes.TEXCOORD_{set}"),
+                format!(
+                    "expected VEC2 of float, unsigned byte or unsigned short, found {:?} of {:?}",
+                    a.dimensions(),
+                    a.data_type()
+                ),
+            ));
+        }
+        if let Some(a) = primitive.indices()
+            && (a.dimensions() != Dimensions::Scalar
+                || !matches!(a.data_type(), DataType::U8 | DataType::U16 | DataType::U32))
+        {
+            return Err(importer.error(
+                format!("{at}.indices"),
+                format!(
+                    "expected SCALAR unsigned integers, found {:?} of {:?}",
+                    a.dimensions(),
+                    a.data_type()
+                ),
+            ));
+        }
         let uvs: Vec<[f32; 2]> = match reader.read_tex_coords(set) {
             Some(t) => t.into_f32().collect(),
             None if primitive.get(&gltf::Semantic::TexCoords(set)).is_some() => {

@@ -473,9 +473,21 @@ fn bad_files_are_errors_naming_the_file_and_the_gltf_path() {
         r#","images":[{"uri":"leaf.png"}],"textures":[{"source":0}],"materials":[{"name":"leaf","pbrMetallicRoughness":{"baseColorTexture":{"index":0}}}]"#,
     )
     .replace(r#""attributes":{"POSITION":0}"#, r#""attributes":{"POSITION":0},"material":0"#);
+    // Indices declared as float vectors: gltf's reader would misread them (fuzz finding).
+    let float_indices = triangle_gltf(
+        [0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0, 0.0],
+        Some([0, 1, 2]),
+        "",
+    )
+    .replace(
+        r#""componentType":5123,"count":3,"type":"SCALAR""#,
+        r#""componentType":5126,"count":1,"type":"VEC2""#,
+    );
+    assert!(float_indices.contains(r#""count":1,"type":"VEC2""#));
     let dir = scratch(
         "bad",
         &[
+            ("float_indices.gltf", float_indices.as_bytes()),
             ("truncated.glb", &glb[..glb.len() / 2]),
             ("missing_buffer.gltf", &two_sided),
             ("out_of_range.gltf", out_of_range.as_bytes()),
@@ -488,6 +500,7 @@ fn bad_files_are_errors_naming_the_file_and_the_gltf_path() {
         ("truncated.glb", ""),
         ("missing_buffer.gltf", "buffers[0].uri"),
         ("out_of_range.gltf", "meshes[0].primitives[0].indices"),
+        ("float_indices.gltf", "meshes[0].primitives[0].indices"),
         ("bad_image.gltf", "baseColorTexture of material 'leaf'"),
         ("garbage.glb", ""),
         ("does_not_exist.glb", "cannot read"),

@@ -4,7 +4,7 @@
 
 use super::{Bvh, WideNode};
 use crate::math::{Ray, gamma};
-use glam::{Vec3A, Vec4};
+use glam::{BVec4A, Vec3A, Vec4};
 
 /// Counters a traversal updates: cheap enough to leave on in release builds. Summed per
 /// tile, then per frame.
@@ -114,7 +114,7 @@ impl NodeRay {
         let y1 = (node.max_y - oy) * iy;
         let z0 = (node.min_z - oz) * iz;
         let z1 = (node.max_z - oz) * iz;
-        let [x0, x1, y0, y1, z0, z1] = if self.axis_parallel {
+        let ([x0, x1, y0, y1, z0, z1], used) = if self.axis_parallel {
             // 0 · ∞ is NaN where the origin lies on a face of a slab the ray runs
             // parallel to: that slab does not limit the ray (the face counts as inside,
             // as the watertight triangle test counts edges). A NaN reciprocal (a
@@ -128,13 +128,16 @@ impl NodeRay {
                 )
             };
             let ((x0, x1), (y0, y1), (z0, z1)) = (open(x0, x1), open(y0, y1), open(z0, z1));
-            [x0, x1, y0, y1, z0, z1]
+            // With every slab open an unused lane (its box at +∞) would pass and send
+            // traversal back to the root forever (fuzz finding): mask unused lanes.
+            let used = node.min_x.cmplt(Vec4::INFINITY);
+            ([x0, x1, y0, y1, z0, z1], used)
         } else {
-            [x0, x1, y0, y1, z0, z1]
+            ([x0, x1, y0, y1, z0, z1], BVec4A::splat(true))
         };
         let t_near = x0.min(x1).max(y0.min(y1)).max(z0.min(z1)).max(Vec4::ZERO);
         let t_far = x0.max(x1).min(y0.max(y1)).min(z0.max(z1)) * FAR_SCALE;
-        let hit = t_near.cmple(t_far) & t_near.cmplt(Vec4::splat(t_max));
+        let hit = t_near.cmple(t_far) & t_near.cmplt(Vec4::splat(t_max)) & used;
         (t_near, hit.bitmask())
     }
 }
