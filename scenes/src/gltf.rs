@@ -411,6 +411,25 @@ pub fn decode_texture(bytes: &[u8]) -> Result<Texture, String> {
     texture.map_err(|e| e.to_string())
 }
 
+/// Refuses a bufferView whose byteStride is smaller than the accessor's items: gltf's
+/// reader would read overlapping items (or, with debug assertions, panic; fuzz finding).
+fn check_stride(
+    importer: &Importer,
+    accessor: &gltf::Accessor,
+    location: &str,
+) -> Result<(), GltfError> {
+    match accessor.view().and_then(|v| v.stride()) {
+        Some(stride) if stride < accessor.size() => Err(importer.error(
+            location.to_string(),
+            format!(
+                "bufferView byteStride {stride} is smaller than the {}-byte items",
+                accessor.size()
+            ),
+        )),
+        _ => Ok(()),
+    }
+}
+
 /// Reads an accessor fully, or names it in an error.
 fn read_accessor<T: gltf::accessor::Item + Copy>(
     importer: &Importer,
@@ -435,6 +454,7 @@ fn read_accessor<T: gltf::accessor::Item + Copy>(
             ),
         ));
     }
+    check_stride(importer, &accessor, location)?;
     gltf::accessor::Iter::<T>::new(accessor, importer.buffer_data())
         .map(|it| it.collect())
         .ok_or_else(|| {
@@ -494,6 +514,12 @@ fn mesh(
         // gltf's reader assumes the types the specification allows and misreads (or, with
         // debug assertions, panics on) others: check them first (fuzz finding).
         use gltf::accessor::{DataType, Dimensions};
+        if let Some(a) = primitive.get(&gltf::Semantic::TexCoords(set)) {
+            check_stride(importer, &a, &format!("{at}.attributes.TEXCOORD_{set}"))?;
+        }
+        if let Some(a) = primitive.indices() {
+            check_stride(importer, &a, &format!("{at}.indices"))?;
+        }
         if let Some(a) = primitive.get(&gltf::Semantic::TexCoords(set))
             && (a.dimensions() != Dimensions::Vec2
                 || !matches!(a.data_type(), DataType::F32 | DataType::U8 | DataType::U16))

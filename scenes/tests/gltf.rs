@@ -484,10 +484,23 @@ fn bad_files_are_errors_naming_the_file_and_the_gltf_path() {
         r#""componentType":5126,"count":1,"type":"VEC2""#,
     );
     assert!(float_indices.contains(r#""count":1,"type":"VEC2""#));
+    // Positions 12 bytes apart cannot sit 11 bytes apart (fuzz finding).
+    let short_stride = triangle_gltf(
+        [0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0, 0.0],
+        Some([0, 1, 2]),
+        "",
+    )
+    .replacen(
+        r#""byteOffset":0,"byteLength":36}"#,
+        r#""byteOffset":0,"byteLength":36,"byteStride":11}"#,
+        1,
+    );
+    assert!(short_stride.contains(r#""byteStride":11"#));
     let dir = scratch(
         "bad",
         &[
             ("float_indices.gltf", float_indices.as_bytes()),
+            ("short_stride.gltf", short_stride.as_bytes()),
             ("truncated.glb", &glb[..glb.len() / 2]),
             ("missing_buffer.gltf", &two_sided),
             ("out_of_range.gltf", out_of_range.as_bytes()),
@@ -501,6 +514,10 @@ fn bad_files_are_errors_naming_the_file_and_the_gltf_path() {
         ("missing_buffer.gltf", "buffers[0].uri"),
         ("out_of_range.gltf", "meshes[0].primitives[0].indices"),
         ("float_indices.gltf", "meshes[0].primitives[0].indices"),
+        (
+            "short_stride.gltf",
+            "meshes[0].primitives[0].attributes.POSITION",
+        ),
         ("bad_image.gltf", "baseColorTexture of material 'leaf'"),
         ("garbage.glb", ""),
         ("does_not_exist.glb", "cannot read"),

@@ -76,6 +76,11 @@ pub struct NodeRay {
 /// "Robust BVH Ray Traversal"), so watertight triangle tests are never culled early.
 const FAR_SCALE: f32 = 1.0 + 2.0 * gamma(3);
 
+/// The matching narrowing of the entry distance: rounded up, it could exceed the distance
+/// of a hit on the box's face and prune that box against a farther hit found first (a
+/// closest hit 1 ulp too far; fuzz finding).
+const NEAR_SCALE: f32 = 1.0 - 2.0 * gamma(3);
+
 impl NodeRay {
     /// Splats origin and reciprocal direction across the four lanes.
     #[inline]
@@ -135,7 +140,7 @@ impl NodeRay {
         } else {
             ([x0, x1, y0, y1, z0, z1], BVec4A::splat(true))
         };
-        let t_near = x0.min(x1).max(y0.min(y1)).max(z0.min(z1)).max(Vec4::ZERO);
+        let t_near = x0.min(x1).max(y0.min(y1)).max(z0.min(z1)).max(Vec4::ZERO) * NEAR_SCALE;
         let t_far = x0.max(x1).min(y0.max(y1)).min(z0.max(z1)) * FAR_SCALE;
         let hit = t_near.cmple(t_far) & t_near.cmplt(Vec4::splat(t_max)) & used;
         (t_near, hit.bitmask())
