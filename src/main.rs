@@ -682,7 +682,7 @@ fn render(args: RenderArgs) -> Result<()> {
     if !args.quiet {
         let rendered = render_stats.frames;
         println!(
-            "{}: {}x{}, {} frames at {} spp ({} spp in all) -> {}\n  {} instances, {} instanced triangles ({} unique), BLAS build {:.2} s, TLAS build {:.1} ms, scene generation {:.2} s\n  render {:.2} s ({:.3} s per frame), {:.2} M rays/s ({} camera + {} shadow rays), {:.2} transparency segments per camera ray ({:.2} holes tested), {} holes made opaque, {} fireflies (pixel-frames over {}x their pixel's mean), total {:.2} s",
+            "{}: {}x{}, {} frames at {} spp ({} spp in all) -> {}\n  {} instances, {} instanced triangles ({} unique), BLAS build {:.2} s, TLAS build {:.1} ms, scene generation {:.2} s\n  render {:.2} s ({:.3} s per frame), {:.2} M rays/s ({} camera + {} shadow rays), {:.2} transparency segments per camera ray ({:.2} holes tested), {} holes made opaque, {}, total {:.2} s",
             scene_label(&args.scene),
             width,
             args.height,
@@ -704,12 +704,24 @@ fn render(args: RenderArgs) -> Result<()> {
             render_stats.total.segments_per_closest_ray(),
             render_stats.total.hole_tests_per_closest_ray(),
             group(render_stats.total.opaque_holes),
-            group(film.fireflies()),
-            sylva::engine::film::FIREFLY_RATIO,
+            fireflies_summary(film),
             wall.as_secs_f64(),
         );
     }
     Ok(())
+}
+
+/// The firefly count for the summary line, or why there is none yet.
+fn fireflies_summary(film: &Film) -> String {
+    use sylva::engine::film::{FIREFLY_MIN_FRAMES, FIREFLY_RATIO};
+    if film.frames() <= FIREFLY_MIN_FRAMES {
+        format!("fireflies judged from frame {}", FIREFLY_MIN_FRAMES + 1)
+    } else {
+        format!(
+            "{} fireflies (pixel-frames over {FIREFLY_RATIO}x their pixel's mean)",
+            group(film.fireflies())
+        )
+    }
 }
 
 /// A linear image (.hdr or .exr: an environment map, or a render to compare), with
