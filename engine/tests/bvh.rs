@@ -360,26 +360,8 @@ fn check_instances_against_brute_force(
         .collect();
     for (name, params) in BuildParams::PRESETS {
         let tlas = TopLevel::build(&lib, &descs, params);
-        let mut stats = TraversalStats::default();
-        for _ in 0..rays {
-            let ray = random_ray(&mut rng, 25.0);
-            let expected = brute_closest_instances(&lib, &descs, &ray);
-            let got = tlas.intersect_closest(&lib, &ray, &mut stats, |_| true);
-            assert_eq!(
-                got.map(|h| h.t),
-                expected.map(|e| e.0),
-                "{name}: closest t for {ray:?}"
-            );
-            if let (Some(g), Some(e)) = (got, expected) {
-                assert!(g.instance == e.1 || g.t == e.0);
-            }
-            assert_eq!(
-                tlas.intersect_any(&lib, &ray, &mut stats, |_| true),
-                expected.is_some(),
-                "{name}: any-hit"
-            );
-        }
-        assert_eq!(stats.closest_rays, rays as u64);
+        let batch: Vec<Ray> = (0..rays).map(|_| random_ray(&mut rng, 25.0)).collect();
+        assert_tlas_matches_brute_force(&lib, &tlas, &descs, &batch, name);
     }
 }
 

@@ -8,7 +8,7 @@
 )]
 
 use glam::{Affine3A, Quat, Vec3, Vec3A};
-use sylva_engine::bvh::BuildParams;
+use sylva_engine::bvh::{BuildParams, TraversalStats};
 use sylva_engine::geometry::{Geometry, GeometryLibrary};
 use sylva_engine::math::Ray;
 use sylva_engine::mesh::TriangleMesh;
@@ -108,6 +108,39 @@ pub fn brute_closest_instances(
         }
     }
     best
+}
+
+/// Asserts that `tlas` finds, for every ray, the closest hit and the any-hit answer of a
+/// brute force over `descs`; returns how many rays hit something.
+pub fn assert_tlas_matches_brute_force(
+    lib: &GeometryLibrary,
+    tlas: &TopLevel,
+    descs: &[InstanceDesc],
+    rays: &[Ray],
+    label: &str,
+) -> usize {
+    let mut stats = TraversalStats::default();
+    let mut hits = 0;
+    for ray in rays {
+        let expected = brute_closest_instances(lib, descs, ray);
+        let got = tlas.intersect_closest(lib, ray, &mut stats, |_| true);
+        assert_eq!(
+            got.map(|h| h.t),
+            expected.map(|e| e.0),
+            "{label}: closest t for {ray:?}"
+        );
+        if let (Some(g), Some(e)) = (got, expected) {
+            assert!(g.instance == e.1 || g.t == e.0);
+        }
+        assert_eq!(
+            tlas.intersect_any(lib, ray, &mut stats, |_| true),
+            expected.is_some(),
+            "{label}: any-hit for {ray:?}"
+        );
+        hits += usize::from(expected.is_some());
+    }
+    assert_eq!(stats.closest_rays, rays.len() as u64);
+    hits
 }
 
 /// A random instance transform with scales in `[10^lo, 10^hi]`.

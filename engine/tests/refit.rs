@@ -6,9 +6,9 @@ mod common;
 
 use common::*;
 use glam::{Affine3A, Quat, Vec3};
-use sylva_engine::bvh::{BuildParams, Bvh, RefitError, TraversalStats};
+use sylva_engine::bvh::{BuildParams, Bvh, RefitError};
 use sylva_engine::geometry::{Geometry, GeometryId, GeometryLibrary};
-use sylva_engine::math::Aabb;
+use sylva_engine::math::{Aabb, Ray};
 use sylva_engine::tlas::{InstanceDesc, RefitRefusal, TopLevel};
 
 fn library(rng: &mut TestRng, geometries: usize) -> GeometryLibrary {
@@ -69,26 +69,8 @@ fn assert_matches_brute_force(
     rng: &mut TestRng,
     rays: usize,
 ) {
-    let mut stats = TraversalStats::default();
-    let mut hits = 0;
-    for _ in 0..rays {
-        let ray = random_ray(rng, 25.0);
-        let expected = brute_closest_instances(lib, descs, &ray);
-        let got = tlas.intersect_closest(lib, &ray, &mut stats, |_| true);
-        assert_eq!(
-            got.map(|h| h.t),
-            expected.map(|e| e.0),
-            "closest t, {ray:?}"
-        );
-        if let (Some(g), Some(e)) = (got, expected) {
-            assert!(g.instance == e.1 || g.t == e.0);
-        }
-        assert_eq!(
-            tlas.intersect_any(lib, &ray, &mut stats, |_| true),
-            expected.is_some()
-        );
-        hits += expected.is_some() as usize;
-    }
+    let batch: Vec<Ray> = (0..rays).map(|_| random_ray(rng, 25.0)).collect();
+    let hits = assert_tlas_matches_brute_force(lib, tlas, descs, &batch, "refitted");
     assert!(
         hits > rays / 20,
         "the rays must hit something: {hits} of {rays}"
