@@ -84,9 +84,10 @@ pub struct TopLevel {
 }
 
 /// Why [`TopLevel::refit`] refused; the TLAS is unchanged and must be rebuilt instead.
-#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+#[derive(Clone, Copy, Debug, PartialEq, Eq, thiserror::Error)]
 pub enum RefitRefusal {
     /// Not as many instances as the last build was given.
+    #[error("{given} instances given, the tree was built for {built}")]
     InstanceCount {
         /// Instances at the last build.
         built: usize,
@@ -94,36 +95,19 @@ pub enum RefitRefusal {
         given: usize,
     },
     /// The instance (the caller's index) now points at another geometry.
+    #[error("instance {instance} points at another geometry")]
     GeometryChanged {
         /// The caller's index of the instance.
         instance: u32,
     },
     /// The instance became unusable (singular or non-finite) or usable: the set of
     /// instances in the tree would change.
+    #[error("instance {instance} became usable or unusable (singular, non-finite or empty)")]
     UsableSetChanged {
         /// The caller's index of the instance.
         instance: u32,
     },
 }
-
-impl std::fmt::Display for RefitRefusal {
-    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        match self {
-            RefitRefusal::InstanceCount { built, given } => {
-                write!(f, "{given} instances given, the tree was built for {built}")
-            }
-            RefitRefusal::GeometryChanged { instance } => {
-                write!(f, "instance {instance} points at another geometry")
-            }
-            RefitRefusal::UsableSetChanged { instance } => write!(
-                f,
-                "instance {instance} became usable or unusable (singular, non-finite or empty)"
-            ),
-        }
-    }
-}
-
-impl std::error::Error for RefitRefusal {}
 
 /// Why an instance cannot enter the tree.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]

@@ -430,6 +430,29 @@ fn check_stride(
     }
 }
 
+/// Refuses an accessor whose stride, dimensions or component type is not one of the
+/// `allowed` layout (`expected` describes it for the error).
+fn check_layout(
+    importer: &Importer,
+    accessor: &gltf::Accessor,
+    location: &str,
+    allowed: (gltf::accessor::Dimensions, &[gltf::accessor::DataType]),
+    expected: &str,
+) -> Result<(), GltfError> {
+    check_stride(importer, accessor, location)?;
+    if accessor.dimensions() != allowed.0 || !allowed.1.contains(&accessor.data_type()) {
+        return Err(importer.error(
+            location.to_string(),
+            format!(
+                "expected {expected}, found {:?} of {:?}",
+                accessor.dimensions(),
+                accessor.data_type()
+            ),
+        ));
+    }
+    Ok(())
+}
+
 /// Reads an accessor fully, or names it in an error.
 fn read_accessor<T: gltf::accessor::Item + Copy>(
     importer: &Importer,
@@ -511,40 +534,32 @@ fn mesh(
                     .and_then(|t| t.tex_coord())
                     .unwrap_or(i.tex_coord())
             });
-        // gltf's reader assumes the types the specification allows and misreads (or, with
-        // debug assertions, panics on) others: check them first (fuzz finding).
+        // gltf's reader assumes the layouts the specification allows and misreads (or,
+        // with debug assertions, panics on) others: check them first (fuzz finding).
         use gltf::accessor::{DataType, Dimensions};
         if let Some(a) = primitive.get(&gltf::Semantic::TexCoords(set)) {
-            check_stride(importer, &a, &format!("{at}.attributes.TEXCOORD_{set}"))?;
+            check_layout(
+                importer,
+                &a,
+                &format!("{at}.attributes.TEXCOORD_{set}"),
+                (
+                    Dimensions::Vec2,
+                    &[DataType::F32, DataType::U8, DataType::U16],
+                ),
+                "VEC2 of float, unsigned byte or unsigned short",
+            )?;
         }
         if let Some(a) = primitive.indices() {
-            check_stride(importer, &a, &format!("{at}.indices"))?;
-        }
-        if let Some(a) = primitive.get(&gltf::Semantic::TexCoords(set))
-            && (a.dimensions() != Dimensions::Vec2
-                || !matches!(a.data_type(), DataType::F32 | DataType::U8 | DataType::U16))
-        {
-            return Err(importer.error(
-                format!("{at}.attributes.TEXCOORD_{set}"),
-                format!(
-                    "expected VEC2 of float, unsigned byte or unsigned short, found {:?} of {:?}",
-                    a.dimensions(),
-                    a.data_type()
+            check_layout(
+                importer,
+                &a,
+                &format!("{at}.indices"),
+                (
+                    Dimensions::Scalar,
+                    &[DataType::U8, DataType::U16, DataType::U32],
                 ),
-            ));
-        }
-        if let Some(a) = primitive.indices()
-            && (a.dimensions() != Dimensions::Scalar
-                || !matches!(a.data_type(), DataType::U8 | DataType::U16 | DataType::U32))
-        {
-            return Err(importer.error(
-                format!("{at}.indices"),
-                format!(
-                    "expected SCALAR unsigned integers, found {:?} of {:?}",
-                    a.dimensions(),
-                    a.data_type()
-                ),
-            ));
+                "SCALAR unsigned integers",
+            )?;
         }
         let uvs: Vec<[f32; 2]> = match reader.read_tex_coords(set) {
             Some(t) => t.into_f32().collect(),

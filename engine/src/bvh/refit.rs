@@ -8,9 +8,10 @@ use super::Bvh;
 use crate::math::Aabb;
 
 /// Why [`Bvh::refit`] refused; the tree is left unchanged.
-#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+#[derive(Clone, Copy, Debug, PartialEq, Eq, thiserror::Error)]
 pub enum RefitError {
     /// The number of boxes differs from the number of leaf slots.
+    #[error("refit given {given} boxes for a tree of {expected} slots")]
     SlotCount {
         /// Leaf slots in the tree.
         expected: usize,
@@ -18,29 +19,12 @@ pub enum RefitError {
         given: usize,
     },
     /// A box is empty or not finite: that primitive must leave the tree (rebuild).
+    #[error("refit given an empty or non-finite box for slot {slot}")]
     InvalidBox {
         /// The leaf slot of the primitive.
         slot: usize,
     },
 }
-
-impl std::fmt::Display for RefitError {
-    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        match self {
-            RefitError::SlotCount { expected, given } => {
-                write!(
-                    f,
-                    "refit given {given} boxes for a tree of {expected} slots"
-                )
-            }
-            RefitError::InvalidBox { slot } => {
-                write!(f, "refit given an empty or non-finite box for slot {slot}")
-            }
-        }
-    }
-}
-
-impl std::error::Error for RefitError {}
 
 impl Bvh {
     /// Recomputes every box of the tree from `slot_bounds`, indexed by leaf slot (the
