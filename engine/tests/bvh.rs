@@ -340,24 +340,8 @@ fn check_instances_against_brute_force(
     rays: usize,
 ) {
     let mut rng = TestRng::new(seed);
-    let mut lib = GeometryLibrary::default();
-    for g in 0..geometries {
-        let n = 1 + (rng.next_u64() % 200) as usize;
-        lib.add(
-            Geometry::new(
-                format!("g{g}"),
-                random_mesh(&mut rng, n, 1.0, 0.4),
-                BuildParams::BALANCED,
-            )
-            .unwrap(),
-        );
-    }
-    let descs: Vec<InstanceDesc> = (0..instances)
-        .map(|_| InstanceDesc {
-            transform: random_transform(&mut rng, 20.0, (-0.5, 0.7)),
-            geometry: GeometryId((rng.next_u64() % geometries as u64) as u32),
-        })
-        .collect();
+    let lib = random_library(&mut rng, geometries, 200);
+    let descs = random_instances(&mut rng, instances, geometries, (-0.5, 0.7));
     for (name, params) in BuildParams::PRESETS {
         let tlas = TopLevel::build(&lib, &descs, params);
         let batch: Vec<Ray> = (0..rays).map(|_| random_ray(&mut rng, 25.0)).collect();

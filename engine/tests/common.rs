@@ -143,6 +143,41 @@ pub fn assert_tlas_matches_brute_force(
     hits
 }
 
+/// `geometries` random meshes of 1 ..= `max_triangles` triangles each, named g0, g1, ….
+pub fn random_library(rng: &mut TestRng, geometries: usize, max_triangles: u64) -> GeometryLibrary {
+    let mut lib = GeometryLibrary::default();
+    for g in 0..geometries {
+        let n = 1 + (rng.next_u64() % max_triangles) as usize;
+        lib.add(
+            Geometry::new(
+                format!("g{g}"),
+                random_mesh(rng, n, 1.0, 0.4),
+                BuildParams::BALANCED,
+            )
+            .unwrap(),
+        );
+    }
+    lib
+}
+
+/// `count` instances of random geometries of `geometries`, placed by [`random_transform`]
+/// within 20 units of the origin.
+pub fn random_instances(
+    rng: &mut TestRng,
+    count: usize,
+    geometries: usize,
+    log_scale: (f32, f32),
+) -> Vec<InstanceDesc> {
+    (0..count)
+        .map(|_| InstanceDesc {
+            transform: random_transform(rng, 20.0, log_scale),
+            geometry: sylva_engine::geometry::GeometryId(
+                (rng.next_u64() % geometries as u64) as u32,
+            ),
+        })
+        .collect()
+}
+
 /// A random instance transform with scales in `[10^lo, 10^hi]`.
 pub fn random_transform(rng: &mut TestRng, extent: f32, log_scale: (f32, f32)) -> Affine3A {
     let s = 10f32.powf(rng.range(log_scale.0, log_scale.1));

@@ -7,34 +7,9 @@ mod common;
 use common::*;
 use glam::{Affine3A, Quat, Vec3};
 use sylva_engine::bvh::{BuildParams, Bvh, RefitError};
-use sylva_engine::geometry::{Geometry, GeometryId, GeometryLibrary};
+use sylva_engine::geometry::{GeometryId, GeometryLibrary};
 use sylva_engine::math::{Aabb, Ray};
 use sylva_engine::tlas::{InstanceDesc, RefitRefusal, TopLevel};
-
-fn library(rng: &mut TestRng, geometries: usize) -> GeometryLibrary {
-    let mut lib = GeometryLibrary::default();
-    for g in 0..geometries {
-        let n = 1 + (rng.next_u64() % 150) as usize;
-        lib.add(
-            Geometry::new(
-                format!("g{g}"),
-                random_mesh(rng, n, 1.0, 0.4),
-                BuildParams::BALANCED,
-            )
-            .unwrap(),
-        );
-    }
-    lib
-}
-
-fn random_instances(rng: &mut TestRng, count: usize, geometries: usize) -> Vec<InstanceDesc> {
-    (0..count)
-        .map(|_| InstanceDesc {
-            transform: random_transform(rng, 20.0, (-0.5, 0.5)),
-            geometry: GeometryId((rng.next_u64() % geometries as u64) as u32),
-        })
-        .collect()
-}
 
 /// Each instance tilted about its own origin and nudged, as swaying plants move.
 fn swayed(rng: &mut TestRng, descs: &[InstanceDesc], angle: f32) -> Vec<InstanceDesc> {
@@ -102,8 +77,8 @@ fn refit_of_unmoved_primitives_reproduces_the_built_tree_bit_for_bit() {
 #[test]
 fn refitted_tlas_equals_brute_force_over_the_moved_instances() {
     let mut rng = TestRng::new(11);
-    let lib = library(&mut rng, 4);
-    let descs = random_instances(&mut rng, 400, 4);
+    let lib = random_library(&mut rng, 4, 150);
+    let descs = random_instances(&mut rng, 400, 4, (-0.5, 0.5));
     for (name, params) in BuildParams::PRESETS {
         let mut tlas = TopLevel::build(&lib, &descs, params);
         assert_eq!(tlas.degradation(), 1.0);
@@ -139,8 +114,8 @@ fn refitted_tlas_equals_brute_force_over_the_moved_instances() {
 #[test]
 fn degradation_stays_near_one_for_sway_and_grows_when_instances_scatter() {
     let mut rng = TestRng::new(5);
-    let lib = library(&mut rng, 3);
-    let descs = random_instances(&mut rng, 2000, 3);
+    let lib = random_library(&mut rng, 3, 150);
+    let descs = random_instances(&mut rng, 2000, 3, (-0.5, 0.5));
     let mut tlas = TopLevel::build(&lib, &descs, BuildParams::BALANCED);
     let swaying = swayed(&mut rng, &descs, 0.05);
     let mild = tlas.refit(&lib, &swaying).unwrap();
@@ -165,8 +140,8 @@ fn degradation_stays_near_one_for_sway_and_grows_when_instances_scatter() {
 #[test]
 fn refit_refuses_what_only_a_build_can_do_and_leaves_the_tree_unchanged() {
     let mut rng = TestRng::new(8);
-    let lib = library(&mut rng, 2);
-    let mut descs = random_instances(&mut rng, 50, 2);
+    let lib = random_library(&mut rng, 2, 150);
+    let mut descs = random_instances(&mut rng, 50, 2, (-0.5, 0.5));
     descs[7].transform = Affine3A::from_scale(Vec3::new(1.0, 0.0, 1.0));
     let tlas = TopLevel::build(&lib, &descs, BuildParams::BALANCED);
     assert_eq!(tlas.skipped.ids, vec![7]);
