@@ -54,29 +54,29 @@ struct ConvergeArgs {
     #[command(flatten)]
     scene: SceneArgs,
     /// Image width in pixels.
-    #[arg(long, default_value_t = 320, value_parser = clap::value_parser!(u32).range(1..=16384))]
+    #[arg(long, default_value_t = 320, allow_negative_numbers = true, value_parser = clap::value_parser!(u32).range(1..=16384))]
     width: u32,
     /// Image height in pixels.
-    #[arg(long, default_value_t = 240, value_parser = clap::value_parser!(u32).range(1..=16384))]
+    #[arg(long, default_value_t = 240, allow_negative_numbers = true, value_parser = clap::value_parser!(u32).range(1..=16384))]
     height: u32,
     /// Render only the central FRACTION of the view (a crop, by narrowing the field of view).
-    #[arg(long, default_value_t = 1.0, value_name = "FRACTION", value_parser = parse_fraction)]
+    #[arg(long, default_value_t = 1.0, value_name = "FRACTION", allow_negative_numbers = true, value_parser = parse_fraction)]
     crop: f32,
     /// Light with a latitude-longitude HDR map instead of the scene's sun and sky.
     #[arg(long, value_name = "FILE")]
     env: Option<PathBuf>,
     /// Virtual lights the map is cut into.
-    #[arg(long, default_value_t = 1024, value_parser = clap::value_parser!(u32).range(1..=65536))]
+    #[arg(long, default_value_t = 1024, allow_negative_numbers = true, value_parser = clap::value_parser!(u32).range(1..=65536))]
     lights: u32,
     /// Wall time each setting may refine for (e.g. 10s, 2m).
-    #[arg(long, default_value = "10s", value_parser = parse_duration)]
+    #[arg(long, default_value = "10s", allow_hyphen_values = true, value_parser = parse_duration)]
     budget: Duration,
     /// Most frames per setting.
-    #[arg(long, default_value_t = 100_000, value_parser = clap::value_parser!(u32).range(1..))]
+    #[arg(long, default_value_t = 100_000, allow_negative_numbers = true, value_parser = clap::value_parser!(u32).range(1..))]
     max_frames: u32,
     /// Frames of the reference: still preset (4 camera and 4 light samples), exact
     /// transparency, a sampler seed of its own.
-    #[arg(long, default_value_t = 64, value_parser = clap::value_parser!(u32).range(1..))]
+    #[arg(long, default_value_t = 64, allow_negative_numbers = true, value_parser = clap::value_parser!(u32).range(1..))]
     reference_frames: u32,
     /// Settings to run, comma-separated [default: interactive, interactive-exact,
     /// interactive-exact-random, still, interactive-1-thread].
@@ -121,11 +121,11 @@ struct SceneArgs {
     #[arg(long, requires = "gltf", value_name = "NAME|INDEX")]
     camera: Option<String>,
     /// Seed of the scene's generation and of the sampler: same seed, same image.
-    #[arg(long, default_value_t = 0)]
+    #[arg(long, default_value_t = 0, allow_negative_numbers = true)]
     seed: u64,
     /// Worker threads for building and rendering (0 = one per core). The image does not
     /// depend on it.
-    #[arg(long, default_value_t = 0, value_parser = clap::value_parser!(u16).range(0..=1024))]
+    #[arg(long, default_value_t = 0, allow_negative_numbers = true, value_parser = clap::value_parser!(u16).range(0..=1024))]
     threads: u16,
 }
 
@@ -187,10 +187,10 @@ struct RenderArgs {
     scene: SceneArgs,
     /// Image width in pixels [default: height × 4/3 (640 at the default height), or × the
     /// glTF camera's aspect ratio].
-    #[arg(long, value_parser = clap::value_parser!(u32).range(1..=16384))]
+    #[arg(long, allow_negative_numbers = true, value_parser = clap::value_parser!(u32).range(1..=16384))]
     width: Option<u32>,
     /// Image height in pixels.
-    #[arg(long, default_value_t = 480, value_parser = clap::value_parser!(u32).range(1..=16384))]
+    #[arg(long, default_value_t = 480, allow_negative_numbers = true, value_parser = clap::value_parser!(u32).range(1..=16384))]
     height: u32,
     /// Quality preset: interactive (1 camera sample, 1 light sample per hit, adaptive
     /// transparency) or still (4 and 4, exact). --spp, --light-samples and
@@ -203,31 +203,31 @@ struct RenderArgs {
     adaptive_transparency: Option<Switch>,
     /// The allowance: NEAR,FAR,DEPTH_NEAR,DEPTH_FAR[,WEIGHT] — up to NEAR metres a ray
     /// passes DEPTH_NEAR holes, beyond FAR only DEPTH_FAR, linear in between.
-    #[arg(long, value_name = "CURVE", default_value = "5,40,4,1,0.75", value_parser = parse_transparency_curve)]
+    #[arg(long, value_name = "CURVE", default_value = "5,40,4,1,0.75", allow_hyphen_values = true, value_parser = parse_transparency_curve)]
     transparency_curve: TransparencyCurve,
     /// Interleaved sampling of the virtual lights: pixels of an N×N tile draw from
     /// different light subsets, rotating every sample (1 = off, independent picks).
-    #[arg(long, value_name = "N", default_value_t = 4, value_parser = clap::value_parser!(u32).range(1..=64))]
+    #[arg(long, value_name = "N", default_value_t = 4, allow_negative_numbers = true, value_parser = clap::value_parser!(u32).range(1..=64))]
     interleave: u32,
     /// Light subsets for --interleave [default: N²].
-    #[arg(long, value_name = "S", value_parser = clap::value_parser!(u32).range(1..=65536))]
+    #[arg(long, value_name = "S", allow_negative_numbers = true, value_parser = clap::value_parser!(u32).range(1..=65536))]
     subsets: Option<u32>,
     /// Camera samples per pixel per frame [default: 4, or the preset's].
-    #[arg(long, value_parser = clap::value_parser!(u32).range(1..=65536))]
+    #[arg(long, allow_negative_numbers = true, value_parser = clap::value_parser!(u32).range(1..=65536))]
     spp: Option<u32>,
     /// Sky shadow rays per camera hit, or virtual lights sampled per hit with --env
     /// (0 = sun only) [default: 2, or the preset's].
-    #[arg(long, visible_alias = "light-samples", value_parser = clap::value_parser!(u32).range(0..=1024))]
+    #[arg(long, visible_alias = "light-samples", allow_negative_numbers = true, value_parser = clap::value_parser!(u32).range(0..=1024))]
     sky_samples: Option<u32>,
     /// Progressive frames the image should hold (each with new random numbers) [default: 1].
     /// With --resume, the total including the checkpoint's frames.
-    #[arg(long, value_parser = clap::value_parser!(u32).range(1..=10_000_000))]
+    #[arg(long, allow_negative_numbers = true, value_parser = clap::value_parser!(u32).range(1..=10_000_000))]
     frames: Option<u32>,
     /// Refine until this much time is spent (e.g. 5s, 500ms, 2m); --frames then caps it.
-    #[arg(long, value_parser = parse_duration)]
+    #[arg(long, allow_hyphen_values = true, value_parser = parse_duration)]
     time: Option<Duration>,
     /// Also write the image every K frames, as OUT.fNNNNNN.EXT.
-    #[arg(long, value_name = "K", value_parser = clap::value_parser!(u32).range(1..))]
+    #[arg(long, value_name = "K", allow_negative_numbers = true, value_parser = clap::value_parser!(u32).range(1..))]
     snapshot_every: Option<u32>,
     /// Save the exact accumulation state at the end, to resume later with --resume.
     #[arg(long, value_name = "FILE")]
@@ -241,7 +241,7 @@ struct RenderArgs {
     #[arg(long, value_name = "FILE")]
     env: Option<PathBuf>,
     /// Virtual directional lights the environment map is discretised into (median cut).
-    #[arg(long, default_value_t = 1024, value_parser = clap::value_parser!(u32).range(1..=65536))]
+    #[arg(long, default_value_t = 1024, allow_negative_numbers = true, value_parser = clap::value_parser!(u32).range(1..=65536))]
     lights: u32,
     /// Exposure in stops, applied before tone mapping (PNG only).
     #[arg(long, default_value_t = 0.0, allow_hyphen_values = true)]

@@ -463,7 +463,15 @@ impl Film {
                 let [r, g, b] = mean[pos.y() * width + pos.x()];
                 (r, g, b, 1.0f32)
             });
-            let mut image = Image::from_channels((width, self.height as usize), channels);
+            // Scan lines in increasing order: the default tiles with unspecified order are
+            // written as the compressing threads finish them, so bytes vary run to run.
+            let encoding = Encoding {
+                compression: Compression::ZIP16,
+                blocks: Blocks::ScanLines,
+                line_order: LineOrder::Increasing,
+            };
+            let mut image =
+                Image::from_encoded_channels((width, self.height as usize), encoding, channels);
             for (key, value) in metadata {
                 if let (Some(key), Some(value)) = (Text::new_or_none(key), Text::new_or_none(value))
                 {
@@ -473,7 +481,12 @@ impl Film {
                         .insert(key, exr::meta::attribute::AttributeValue::Text(value));
                 }
             }
-            image.write().to_file(tmp).map_err(|e| e.to_string())
+            image.write().to_file(tmp).map_err(|e| e.to_string())?;
+            // The exr crate keeps custom attributes in a hash map and writes them in its
+            // (per-process random) order; sorting them makes equal images equal files.
+            let mut bytes = std::fs::read(tmp).map_err(|e| e.to_string())?;
+            sort_exr_header_attributes(&mut bytes)?;
+            std::fs::write(tmp, bytes).map_err(|e| e.to_string())
         })
     }
 
@@ -566,6 +579,51 @@ pub enum OutputError {
         /// What went wrong.
         reason: String,
     },
+}
+
+/// Sorts the attributes of a single-part EXR header by name, in place. The header keeps
+/// its length, so the chunk offsets after it stay valid.
+#[cfg(feature = "exr")]
+fn sort_exr_header_attributes(file: &mut [u8]) -> Result<(), String> {
+    const MULTI_PART: u32 = 1 << 12;
+    let malformed = || "EXR header is malformed".to_string();
+    let version = file
+        .get(4..8)
+        .map(|b| u32::from_le_bytes([b[0], b[1], b[2], b[3]]))
+        .ok_or_else(malformed)?;
+    if version & MULTI_PART != 0 {
+        return Err("multi-part EXR headers are not sorted".into());
+    }
+    let start = 8;
+    let mut attributes: Vec<(usize, usize)> = Vec::new();
+    let mut at = start;
+    let string_end = |from: usize| {
+        file.get(from..)
+            .and_then(|rest| rest.iter().position(|&b| b == 0))
+            .map(|n| from + n)
+            .ok_or_else(malformed)
+    };
+    while *file.get(at).ok_or_else(malformed)? != 0 {
+        let name_end = string_end(at)?;
+        let type_end = string_end(name_end + 1)?;
+        let size_at = type_end + 1;
+        let size = file
+            .get(size_at..size_at + 4)
+            .map(|b| i32::from_le_bytes([b[0], b[1], b[2], b[3]]))
+            .ok_or_else(malformed)?;
+        let end = usize::try_from(size)
+            .ok()
+            .and_then(|s| (size_at + 4).checked_add(s))
+            .filter(|&end| end <= file.len())
+            .ok_or_else(malformed)?;
+        attributes.push((at, end));
+        at = end;
+    }
+    let mut sorted: Vec<&[u8]> = attributes.iter().map(|&(a, b)| &file[a..b]).collect();
+    sorted.sort_by_key(|attribute| attribute.split(|&b| b == 0).next().unwrap_or_default());
+    let header: Vec<u8> = sorted.concat();
+    file[start..at].copy_from_slice(&header);
+    Ok(())
 }
 
 fn write_atomically(

@@ -63,7 +63,7 @@ fn the_paper_preset_has_table_1s_layers_68_species_and_365041_plants() {
 #[test]
 fn a_scene_file_with_a_gltf_species_builds() {
     let tree = Path::new(env!("CARGO_MANIFEST_DIR"))
-        .join("../../shared/assets/plants/kenney_platformer_kit/tree.glb")
+        .join("../tests/data/plants/kenney_platformer_kit/tree.glb")
         .canonicalize()
         .unwrap();
     let text = format!(

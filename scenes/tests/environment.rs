@@ -8,7 +8,7 @@ use sylva_scenes::environment::load_environment;
 
 fn asset(relative: &str) -> PathBuf {
     Path::new(env!("CARGO_MANIFEST_DIR"))
-        .join("../../shared/assets")
+        .join("../tests/data")
         .join(relative)
 }
 

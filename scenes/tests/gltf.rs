@@ -1,4 +1,4 @@
-//! glTF import against the Khronos conformance models in `../shared/assets`: each test
+//! glTF import against the Khronos conformance models in `tests/data/`: each test
 //! checks the property its model exists to test, plus bad files that must give errors
 //! naming the file and the glTF path.
 #![cfg(feature = "gltf")]
@@ -17,7 +17,7 @@ use sylva_scenes::gltf::{CameraChoice, GltfScene, import};
 
 fn asset(relative: &str) -> PathBuf {
     Path::new(env!("CARGO_MANIFEST_DIR"))
-        .join("../../shared/assets")
+        .join("../tests/data")
         .join(relative)
 }
 
