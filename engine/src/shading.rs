@@ -253,6 +253,27 @@ impl Texture {
         top.lerp(bottom, ty)
     }
 
+    /// The alpha of [`sample`](Self::sample), bit for bit, reading only the alpha bytes:
+    /// the alpha test runs for every candidate leaf hit and needs no colour.
+    #[inline]
+    pub fn sample_alpha(&self, uv: Vec2) -> f32 {
+        let uv = if uv.is_finite() { uv } else { Vec2::ZERO };
+        let x = uv.x * self.width as f32 - 0.5;
+        let y = uv.y * self.height as f32 - 0.5;
+        let (fx, fy) = (x.floor(), y.floor());
+        let (tx, ty) = (x - fx, y - fy);
+        let ix = self.wrap[0].reduce(fx, self.width);
+        let iy = self.wrap[1].reduce(fy, self.height);
+        let (w, h) = (self.width as i64, self.height as i64);
+        let (x0, x1) = (self.wrap[0].wrap(ix, w), self.wrap[0].wrap(ix + 1, w));
+        let (y0, y1) = (self.wrap[1].wrap(iy, h), self.wrap[1].wrap(iy + 1, h));
+        let alpha = |x: i64, y: i64| self.texels[(y * w + x) as usize][3] as f32 / 255.0;
+        let lerp = |a: f32, b: f32, s: f32| a * (1.0 - s) + b * s;
+        let top = lerp(alpha(x0, y0), alpha(x1, y0), tx);
+        let bottom = lerp(alpha(x0, y1), alpha(x1, y1), tx);
+        lerp(top, bottom, ty)
+    }
+
     /// Heap bytes held.
     pub fn memory_bytes(&self) -> usize {
         self.texels.capacity() * 4
@@ -359,7 +380,7 @@ impl Shader {
     #[inline]
     pub fn is_opaque_at(&self, uv: Vec2) -> bool {
         match (&self.texture, self.alpha_cutoff) {
-            (Some(t), Some(cutoff)) => t.sample(self.texture_uv(uv)).w >= cutoff,
+            (Some(t), Some(cutoff)) => t.sample_alpha(self.texture_uv(uv)) >= cutoff,
             _ => true,
         }
     }
@@ -435,6 +456,40 @@ impl ShaderTable {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn alpha_sampling_equals_the_full_sample_bit_for_bit() {
+        let texels: Vec<[u8; 4]> = (0..7 * 5u32)
+            .map(|i| [i as u8, (i * 7) as u8, (i * 13) as u8, (i * 37 % 256) as u8])
+            .collect();
+        let mut state = 0x2545_f491u32;
+        let mut next = || {
+            state ^= state << 13;
+            state ^= state >> 17;
+            state ^= state << 5;
+            (state as f32 / u32::MAX as f32 - 0.5) * 6.0
+        };
+        for wrap in [
+            WrapMode::Repeat,
+            WrapMode::ClampToEdge,
+            WrapMode::MirroredRepeat,
+        ] {
+            let t = Texture::from_srgba8(7, 5, texels.clone())
+                .unwrap()
+                .with_wrap(wrap, WrapMode::Repeat);
+            let special = [Vec2::new(f32::NAN, 0.2), Vec2::new(1e30, -1e30), Vec2::ZERO];
+            for uv in (0..10_000)
+                .map(|_| Vec2::new(next(), next()))
+                .chain(special)
+            {
+                assert_eq!(
+                    t.sample_alpha(uv).to_bits(),
+                    t.sample(uv).w.to_bits(),
+                    "{wrap:?} at {uv}"
+                );
+            }
+        }
+    }
 
     #[test]
     fn texture_top_left_is_uv_origin_and_repeats() {
