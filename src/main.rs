@@ -785,7 +785,13 @@ fn info(args: SceneArgs) -> Result<()> {
     let pool = world.resource::<RenderPool>().clone();
     let descs = scene.instance_descs();
     let start = Instant::now();
-    let tlas = pool.install(|| TopLevel::build(&scene.library, &descs, Default::default()));
+    let tlas = pool.install(|| {
+        TopLevel::build(
+            &scene.library,
+            &descs,
+            sylva::systems::BuildSettings::default().top_level,
+        )
+    });
     let tlas_time = start.elapsed();
     let total_time = command_start.elapsed();
     println!("scene            {} (seed {})", scene.name, args.seed);

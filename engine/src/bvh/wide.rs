@@ -108,28 +108,36 @@ pub fn collapse(binary: &[BvhNode]) -> Vec<WideNode> {
 
 fn collapse_node(binary: &[BvhNode], index: usize, wide: &mut Vec<WideNode>) -> u32 {
     let first = binary[index].first() as usize;
-    let mut lanes: Vec<usize> = vec![first, first + 1];
-    while lanes.len() < 4 {
-        let widest = lanes
-            .iter()
-            .enumerate()
-            .filter(|(_, n)| !binary[**n].is_leaf())
-            .max_by(|(_, a), (_, b)| {
-                binary[**a]
-                    .bounds()
-                    .surface_area()
-                    .total_cmp(&binary[**b].bounds().surface_area())
-            });
-        let Some((position, &open)) = widest else {
+    // A fixed array: a heap-allocated lane list per node cost more than the rest of the
+    // collapse together.
+    let mut lanes = [first, first + 1, 0, 0];
+    let mut len = 2;
+    while len < 4 {
+        let mut widest: Option<(usize, f32)> = None;
+        for (position, &node) in lanes[..len].iter().enumerate() {
+            let candidate = &binary[node];
+            if candidate.is_leaf() {
+                continue;
+            }
+            let area = candidate.bounds().surface_area();
+            if widest.is_none_or(|(_, best)| area > best) {
+                widest = Some((position, area));
+            }
+        }
+        let Some((position, _)) = widest else {
             break;
         };
-        let child = binary[open].first() as usize;
-        lanes.splice(position..=position, [child, child + 1]);
+        let child = binary[lanes[position]].first() as usize;
+        // The opened node's two children take its place, in order.
+        lanes.copy_within(position + 1..len, position + 2);
+        lanes[position] = child;
+        lanes[position + 1] = child + 1;
+        len += 1;
     }
     let at = wide.len();
     wide.push(WideNode::empty());
     let mut node = WideNode::empty();
-    for (lane, &child) in lanes.iter().enumerate() {
+    for (lane, &child) in lanes[..len].iter().enumerate() {
         let c = &binary[child];
         node.set_box(lane, c.bounds());
         if c.is_leaf() {
