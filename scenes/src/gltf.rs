@@ -17,6 +17,7 @@
 use crate::ecosystem::SpeciesModel;
 use crate::{Plant, SceneBuild, SceneError, Species};
 use glam::{Affine3A, Mat4, Quat, Vec2, Vec3, Vec3A, Vec4};
+use rayon::prelude::*;
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
 use std::time::Instant;
@@ -942,21 +943,30 @@ impl GltfScene {
             .path
             .file_stem()
             .map_or("gltf".into(), |s| s.to_string_lossy().into_owned());
+        // Every mesh's BLAS at once on the current pool (each build is parallel inside
+        // too, which small meshes are not); the library keeps the file's mesh order.
+        let blas_start = Instant::now();
+        let built: Vec<Result<Geometry, SceneError>> = self
+            .meshes
+            .into_par_iter()
+            .map(|m| {
+                Geometry::new(&m.name, m.mesh, BuildParams::BALANCED).map_err(|e| {
+                    SceneError::Mesh {
+                        scene: name.clone(),
+                        mesh: m.name.clone(),
+                        source: e,
+                    }
+                })
+            })
+            .collect();
+        let blas_time = blas_start.elapsed();
         let mut library = GeometryLibrary::default();
         let mut species = Vec::new();
-        for m in self.meshes {
-            let geometry = Geometry::new(&m.name, m.mesh, BuildParams::BALANCED).map_err(|e| {
-                SceneError::Mesh {
-                    scene: name.clone(),
-                    mesh: m.name.clone(),
-                    source: e,
-                }
-            })?;
+        for geometry in built {
+            let geometry = geometry?;
+            let name = geometry.name.clone();
             let id = library.add(geometry);
-            species.push(Species {
-                name: m.name,
-                geometry: id,
-            });
+            species.push(Species { name, geometry: id });
         }
         let mut sheared = 0usize;
         let plants = self
@@ -1014,8 +1024,8 @@ impl GltfScene {
             environment: None,
             camera,
             camera_transform,
-            generate_time: start.elapsed(),
-            blas_time: std::time::Duration::ZERO,
+            generate_time: start.elapsed() - blas_time,
+            blas_time,
         })
     }
 }
