@@ -223,11 +223,31 @@ impl Texture {
         self.mean_opaque_color
     }
 
+    /// The wrapped indices of the four texels around `uv` — (x0, y0), (x1, y0), (x0, y1),
+    /// (x1, y1) — and the bilinear weights along x and y. Non-finite UVs read texel (0, 0).
     #[inline]
-    fn texel(&self, x: i64, y: i64) -> Vec4 {
+    fn footprint(&self, uv: Vec2) -> ([usize; 4], f32, f32) {
+        let uv = if uv.is_finite() { uv } else { Vec2::ZERO };
+        let x = uv.x * self.width as f32 - 0.5;
+        let y = uv.y * self.height as f32 - 0.5;
+        let (fx, fy) = (x.floor(), y.floor());
+        let ix = self.wrap[0].reduce(fx, self.width);
+        let iy = self.wrap[1].reduce(fy, self.height);
         let (w, h) = (self.width as i64, self.height as i64);
-        let (x, y) = (self.wrap[0].wrap(x, w), self.wrap[1].wrap(y, h));
-        let t = self.texels[(y * w + x) as usize];
+        let (x0, x1) = (self.wrap[0].wrap(ix, w), self.wrap[0].wrap(ix + 1, w));
+        let (y0, y1) = (self.wrap[1].wrap(iy, h), self.wrap[1].wrap(iy + 1, h));
+        let at = |x: i64, y: i64| (y * w + x) as usize;
+        (
+            [at(x0, y0), at(x1, y0), at(x0, y1), at(x1, y1)],
+            x - fx,
+            y - fy,
+        )
+    }
+
+    /// Texel `index` in linear RGB + alpha.
+    #[inline]
+    fn texel(&self, index: usize) -> Vec4 {
+        let t = self.texels[index];
         let table = srgb_to_linear_table();
         Vec4::new(
             table[t[0] as usize],
@@ -241,15 +261,9 @@ impl Texture {
     /// Non-finite UVs sample texel (0, 0).
     #[inline]
     pub fn sample(&self, uv: Vec2) -> Vec4 {
-        let uv = if uv.is_finite() { uv } else { Vec2::ZERO };
-        let x = uv.x * self.width as f32 - 0.5;
-        let y = uv.y * self.height as f32 - 0.5;
-        let (fx, fy) = (x.floor(), y.floor());
-        let (tx, ty) = (x - fx, y - fy);
-        let ix = self.wrap[0].reduce(fx, self.width);
-        let iy = self.wrap[1].reduce(fy, self.height);
-        let top = self.texel(ix, iy).lerp(self.texel(ix + 1, iy), tx);
-        let bottom = self.texel(ix, iy + 1).lerp(self.texel(ix + 1, iy + 1), tx);
+        let ([a, b, c, d], tx, ty) = self.footprint(uv);
+        let top = self.texel(a).lerp(self.texel(b), tx);
+        let bottom = self.texel(c).lerp(self.texel(d), tx);
         top.lerp(bottom, ty)
     }
 
@@ -257,21 +271,15 @@ impl Texture {
     /// the alpha test runs for every candidate leaf hit and needs no colour.
     #[inline]
     pub fn sample_alpha(&self, uv: Vec2) -> f32 {
-        let uv = if uv.is_finite() { uv } else { Vec2::ZERO };
-        let x = uv.x * self.width as f32 - 0.5;
-        let y = uv.y * self.height as f32 - 0.5;
-        let (fx, fy) = (x.floor(), y.floor());
-        let (tx, ty) = (x - fx, y - fy);
-        let ix = self.wrap[0].reduce(fx, self.width);
-        let iy = self.wrap[1].reduce(fy, self.height);
-        let (w, h) = (self.width as i64, self.height as i64);
-        let (x0, x1) = (self.wrap[0].wrap(ix, w), self.wrap[0].wrap(ix + 1, w));
-        let (y0, y1) = (self.wrap[1].wrap(iy, h), self.wrap[1].wrap(iy + 1, h));
-        let alpha = |x: i64, y: i64| self.texels[(y * w + x) as usize][3] as f32 / 255.0;
-        let lerp = |a: f32, b: f32, s: f32| a * (1.0 - s) + b * s;
-        let top = lerp(alpha(x0, y0), alpha(x1, y0), tx);
-        let bottom = lerp(alpha(x0, y1), alpha(x1, y1), tx);
-        lerp(top, bottom, ty)
+        let ([a, b, c, d], tx, ty) = self.footprint(uv);
+        let alpha = |index: usize| self.texels[index][3] as f32 / 255.0;
+        // Vec4::lerp's arithmetic, one lane.
+        let lerp = |from: f32, to: f32, s: f32| from * (1.0 - s) + to * s;
+        lerp(
+            lerp(alpha(a), alpha(b), tx),
+            lerp(alpha(c), alpha(d), tx),
+            ty,
+        )
     }
 
     /// Heap bytes held.

@@ -2,7 +2,7 @@
 //! traversal moves the ray into the instance's object space and descends its BLAS.
 
 use crate::bvh::{BuildParams, Bvh, TraversalStats};
-use crate::geometry::{GeometryId, GeometryLibrary};
+use crate::geometry::{Geometry, GeometryId, GeometryLibrary};
 use crate::math::{Aabb, Ray};
 use glam::{Affine3A, Vec3A};
 use rayon::prelude::*;
@@ -119,9 +119,11 @@ enum Unusable {
 /// An instance's world box and record, or why it is left out.
 type Prepared = Result<(Aabb, InstanceRecord), Unusable>;
 
-/// An instance's world box, or why it cannot enter the tree; the same verdict as
-/// [`prepare`] without computing the inverse.
-fn world_bounds(library: &GeometryLibrary, desc: &InstanceDesc) -> Result<Aabb, Unusable> {
+/// The instance's geometry and world → object transform, or why it cannot enter the tree.
+fn usable<'a>(
+    library: &'a GeometryLibrary,
+    desc: &InstanceDesc,
+) -> Result<(&'a Geometry, Affine3A), Unusable> {
     let geometry = library
         .get(desc.geometry)
         .ok_or(Unusable::UnknownGeometry)?;
@@ -130,24 +132,21 @@ fn world_bounds(library: &GeometryLibrary, desc: &InstanceDesc) -> Result<Aabb, 
         return Err(Unusable::Singular);
     }
     // The inverse can still overflow for tiny but non-zero determinants.
-    if !desc.transform.inverse().is_finite() {
-        return Err(Unusable::Singular);
-    }
-    Ok(geometry.bounds().transformed(&desc.transform))
-}
-
-fn prepare(library: &GeometryLibrary, id: u32, desc: &InstanceDesc) -> Prepared {
-    let geometry = library
-        .get(desc.geometry)
-        .ok_or(Unusable::UnknownGeometry)?;
-    let det = desc.transform.matrix3.determinant();
-    if !desc.transform.is_finite() || det == 0.0 || !det.is_finite() {
-        return Err(Unusable::Singular);
-    }
     let world_to_object = desc.transform.inverse();
     if !world_to_object.is_finite() {
         return Err(Unusable::Singular);
     }
+    Ok((geometry, world_to_object))
+}
+
+/// An instance's world box, or why it cannot enter the tree.
+fn world_bounds(library: &GeometryLibrary, desc: &InstanceDesc) -> Result<Aabb, Unusable> {
+    let (geometry, _) = usable(library, desc)?;
+    Ok(geometry.bounds().transformed(&desc.transform))
+}
+
+fn prepare(library: &GeometryLibrary, id: u32, desc: &InstanceDesc) -> Prepared {
+    let (geometry, world_to_object) = usable(library, desc)?;
     let record = InstanceRecord {
         object_to_world: desc.transform,
         world_to_object,
