@@ -105,7 +105,7 @@ impl WatertightRay {
         let magnitude_x = (vx.abs() + (sx * vz).abs()).max_element();
         let magnitude_y = (vy.abs() + (sy * vz).abs()).max_element();
         let bound = 32.0 * f32::EPSILON * 0.5 * magnitude_x * magnitude_y;
-        if !(bound.is_finite() && bound >= MIN_RELIABLE_BOUND) || !e.is_finite() {
+        if !(bound.is_finite() && bound >= MIN_RELIABLE_BOUND && e.is_finite()) {
             return false;
         }
         e.cmplt(Vec3A::splat(-bound)).any() && e.cmpgt(Vec3A::splat(bound)).any()
