@@ -946,7 +946,7 @@ impl GltfScene {
         // Every mesh's BLAS at once on the current pool (each build is parallel inside
         // too, which small meshes are not); the library keeps the file's mesh order.
         let blas_start = Instant::now();
-        let built: Vec<Result<Geometry, SceneError>> = self
+        let built: Vec<Geometry> = self
             .meshes
             .into_par_iter()
             .map(|m| {
@@ -958,12 +958,11 @@ impl GltfScene {
                     }
                 })
             })
-            .collect();
+            .collect::<Result<_, _>>()?;
         let blas_time = blas_start.elapsed();
         let mut library = GeometryLibrary::default();
         let mut species = Vec::new();
         for geometry in built {
-            let geometry = geometry?;
             let name = geometry.name.clone();
             let id = library.add(geometry);
             species.push(Species { name, geometry: id });
