@@ -1,5 +1,6 @@
 //! Ray throughput on the default scene at 640×480 (primary closest-hit, sun shadow
-//! any-hit) and the time of a full 4 spp frame, on a 2-thread pool.
+//! any-hit, incoherent diffuse-bounce closest-hit) and the time of a full 4 spp frame,
+//! on a 2-thread pool.
 
 mod support;
 
@@ -14,6 +15,7 @@ fn rays(c: &mut Criterion) {
     let scene = bench.scene();
     let primary = bench.primary_rays();
     let shadow = pool.install(|| bench.shadow_rays());
+    let incoherent = pool.install(|| bench.incoherent_rays());
     let mut group = c.benchmark_group("meadow_640x480_2_threads");
     group
         .sample_size(20)
@@ -27,6 +29,12 @@ fn rays(c: &mut Criterion) {
     group.throughput(Throughput::Elements(shadow.len() as u64));
     group.bench_function("sun_shadow_any_hit_rays", |b| {
         b.iter(|| pool.install(|| count_rays(&shadow, |r, stats| scene.occluded(r, stats))))
+    });
+    group.throughput(Throughput::Elements(incoherent.len() as u64));
+    group.bench_function("incoherent_closest_hit_rays", |b| {
+        b.iter(|| {
+            pool.install(|| count_rays(&incoherent, |r, stats| scene.closest(r, stats).is_some()))
+        })
     });
     group.finish();
 

@@ -90,6 +90,37 @@ impl BenchScene {
             })
             .collect()
     }
+
+    /// One diffuse bounce from every primary hit: cosine-distributed directions about the
+    /// shading normal, the incoherent rays of global illumination.
+    pub fn incoherent_rays(&self) -> Vec<Ray> {
+        let scene = self.scene();
+        self.primary_rays()
+            .par_iter()
+            .enumerate()
+            .filter_map(|(i, ray)| {
+                let hit = scene.closest(ray, &mut TraversalStats::default())?;
+                let s = scene.surface(&hit, ray.direction);
+                let n = s.shading_normal;
+                let (t, b) = sylva::engine::sampling::orthonormal_basis(n);
+                let u = Vec2::new(unit_hash(2 * i as u64), unit_hash(2 * i as u64 + 1));
+                let local = sylva::engine::sampling::cosine_hemisphere(u);
+                let direction = (t * local.x + b * local.y + n * local.z).normalize();
+                Some(Ray::new(
+                    s.point.offset_origin(s.geometric_normal, direction),
+                    direction,
+                ))
+            })
+            .collect()
+    }
+}
+
+/// A number in [0, 1) from a hash of `i` (splitmix64).
+fn unit_hash(i: u64) -> f32 {
+    let mut z = i.wrapping_add(0x9e37_79b9_7f4a_7c15);
+    z = (z ^ (z >> 30)).wrapping_mul(0xbf58_476d_1ce4_e5b9);
+    z = (z ^ (z >> 27)).wrapping_mul(0x94d0_49bb_1331_11eb);
+    ((z ^ (z >> 31)) >> 40) as f32 / (1u64 << 24) as f32
 }
 
 /// The 2-thread pool every benchmark runs on.
