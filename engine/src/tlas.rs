@@ -145,15 +145,23 @@ fn world_bounds(library: &GeometryLibrary, desc: &InstanceDesc) -> Result<Aabb, 
     Ok(geometry.bounds().transformed(&desc.transform))
 }
 
-fn prepare(library: &GeometryLibrary, id: u32, desc: &InstanceDesc) -> Prepared {
-    let (geometry, world_to_object) = usable(library, desc)?;
-    let record = InstanceRecord {
+/// An instance's record (with the inverse transform), or why it cannot enter the tree.
+fn record(
+    library: &GeometryLibrary,
+    id: u32,
+    desc: &InstanceDesc,
+) -> Result<InstanceRecord, Unusable> {
+    let (_, world_to_object) = usable(library, desc)?;
+    Ok(InstanceRecord {
         object_to_world: desc.transform,
         world_to_object,
         geometry: desc.geometry,
         id,
-    };
-    Ok((geometry.bounds().transformed(&desc.transform), record))
+    })
+}
+
+fn prepare(library: &GeometryLibrary, id: u32, desc: &InstanceDesc) -> Prepared {
+    Ok((world_bounds(library, desc)?, record(library, id, desc)?))
 }
 
 /// Summed surface area of instance boxes (at least the smallest positive f64, so a ratio
@@ -210,9 +218,8 @@ impl TopLevel {
             .prim_indices
             .par_iter()
             .map(|&i| {
-                let (_, record) = prepare(library, i, &instances[i as usize])
-                    .expect("the BVH keeps only boxes of usable instances");
-                record
+                record(library, i, &instances[i as usize])
+                    .expect("the BVH keeps only boxes of usable instances")
             })
             .collect();
         let mut in_tree = vec![false; instances.len()];
@@ -278,8 +285,8 @@ impl TopLevel {
             })
             .and_then(|()| {
                 let newcomer = self.outside.par_iter().find_any(|&&instance| {
-                    prepare(library, instance, &instances[instance as usize])
-                        .is_ok_and(|(bounds, _)| is_hittable(&bounds))
+                    world_bounds(library, &instances[instance as usize])
+                        .is_ok_and(|bounds| is_hittable(&bounds))
                 });
                 match newcomer {
                     Some(&instance) => Err(RefitRefusal::UsableSetChanged { instance }),
@@ -293,11 +300,9 @@ impl TopLevel {
         self.bvh
             .refit(&slot_bounds)
             .expect("every slot box was checked finite and non-empty");
-        self.instances.par_iter_mut().for_each(|record| {
-            let id = record.id;
-            *record = prepare(library, id, &instances[id as usize])
-                .expect("checked above")
-                .1;
+        self.instances.par_iter_mut().for_each(|slot| {
+            let id = slot.id;
+            *slot = record(library, id, &instances[id as usize]).expect("checked above");
         });
         self.current_sah_cost = self.bvh.sah_cost() / primitive_area(slot_bounds.iter());
         self.refit_scratch = slot_bounds;
