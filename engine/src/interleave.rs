@@ -64,11 +64,22 @@ impl LightSubsets {
     /// the subsets that spreads early steps apart (bit reversal for a power-of-two count,
     /// a golden-ratio stride otherwise), so a pixel's first few samples already come from
     /// distant strata rather than neighbouring ones.
+    ///
+    /// Places are shuffled differently in every tile (a hashed permutation of the tile's
+    /// pixels; the pixels of a tile still take distinct subsets): with one arrangement for
+    /// all tiles, the early steps of the spread (0, 8,
+    /// 4, 12 of 16) are multiples of the tile edge, so every pixel of a column class drew
+    /// the same subsets and 1–4 spp images showed vertical stripes.
     #[inline]
     pub fn subset(&self, x: u32, y: u32, frame: u32, sample: u32, samples_per_pixel: u32) -> u32 {
         let n = self.pattern.max(1);
         let count = u64::from(self.count.max(1));
-        let place = u64::from((y % n) * n + x % n);
+        let tile = hash32(
+            (x / n).wrapping_mul(0x9e37_79b1)
+                ^ (y / n).wrapping_mul(0x85eb_ca77)
+                ^ self.offset.wrapping_mul(0xc2b2_ae3d),
+        );
+        let place = u64::from(permute((y % n) * n + x % n, n.saturating_mul(n), tile));
         let step = u64::from(frame) * u64::from(samples_per_pixel) + u64::from(sample);
         let spread = spread_step(step % count, count);
         ((place + spread + u64::from(self.offset)) % count) as u32
@@ -100,6 +111,53 @@ fn spread_step(step: u64, count: u64) -> u64 {
         stride += 1;
     }
     step * stride % count
+}
+
+/// A pseudo-random permutation of `0..len` selected by `seed`, evaluated at `index`
+/// (Kensler 2013, "Correlated Multi-Jittered Sampling", §3: an invertible hash on the
+/// next power of two, walked until it lands inside the range).
+#[inline]
+fn permute(index: u32, len: u32, seed: u32) -> u32 {
+    if len <= 1 {
+        return 0;
+    }
+    let mask = u32::MAX >> (len - 1).leading_zeros();
+    let mut i = index;
+    loop {
+        // Each step is a bijection on `0..=mask`: xor with constants, odd multiplications
+        // and xor-shifts of the masked value.
+        i ^= seed;
+        i = i.wrapping_mul(0xe170_893d);
+        i ^= seed >> 16;
+        i ^= (i & mask) >> 4;
+        i ^= seed >> 8;
+        i = i.wrapping_mul(0x0929_eb3f);
+        i ^= seed >> 23;
+        i ^= (i & mask) >> 1;
+        i = i.wrapping_mul(1 | seed >> 27);
+        i = i.wrapping_mul(0x6935_fa69);
+        i ^= (i & mask) >> 11;
+        i = i.wrapping_mul(0x74dc_b303);
+        i ^= (i & mask) >> 2;
+        i = i.wrapping_mul(0x9e50_1cc3);
+        i ^= (i & mask) >> 2;
+        i = i.wrapping_mul(0xc860_a3df);
+        i &= mask;
+        i ^= i >> 5;
+        if i < len {
+            return (i + seed) % len;
+        }
+    }
+}
+
+/// A 32-bit finaliser (murmur3's): nearby inputs give unrelated outputs.
+#[inline]
+fn hash32(mut h: u32) -> u32 {
+    h ^= h >> 16;
+    h = h.wrapping_mul(0x85eb_ca6b);
+    h ^= h >> 13;
+    h = h.wrapping_mul(0xc2b2_ae35);
+    h ^ (h >> 16)
 }
 
 fn gcd(mut a: u64, mut b: u64) -> u64 {
@@ -142,7 +200,9 @@ mod tests {
             count: 16,
             offset: 0,
         };
-        let first: Vec<u32> = (0..4).map(|f| subsets.subset(0, 0, f, 0, 1)).collect();
+        let first: Vec<u32> = (0..4)
+            .map(|f| (subsets.subset(0, 0, f, 0, 1) + 16 - subsets.subset(0, 0, 0, 0, 1)) % 16)
+            .collect();
         assert_eq!(first, [0, 8, 4, 12]);
         for count in [3, 10, 25, 100] {
             let seen: std::collections::BTreeSet<u64> =
@@ -159,7 +219,7 @@ mod tests {
                 count,
                 offset: 5,
             };
-            for (x0, y0) in [(0, 0), (4, 8), (12, 20)] {
+            for (x0, y0) in [(0, 0), (pattern, 2 * pattern), (3 * pattern, 5 * pattern)] {
                 let mut seen = std::collections::BTreeSet::new();
                 for y in y0..y0 + pattern {
                     for x in x0..x0 + pattern {
@@ -167,6 +227,48 @@ mod tests {
                     }
                 }
                 assert_eq!(seen.len() as u32, count.min(pattern * pattern));
+            }
+        }
+    }
+
+    #[test]
+    fn tiles_arrange_their_pixels_differently() {
+        // What a 1-4 spp frame sees: the set of subsets each pixel draws in its first k
+        // steps. With one arrangement for every tile, that set was a function of the
+        // pixel's column class (x mod 4) alone: vertical stripes.
+        let subsets = LightSubsets {
+            pattern: 4,
+            count: 16,
+            offset: 3,
+        };
+        for k in [2u32, 4] {
+            let early = |x: u32, y: u32| {
+                let mut set: Vec<u32> = (0..k).map(|f| subsets.subset(x, y, f, 0, 1)).collect();
+                set.sort_unstable();
+                set
+            };
+            for column in 0..4 {
+                let mut counts = std::collections::BTreeMap::<Vec<u32>, u32>::new();
+                for tile in 0..64 {
+                    for row in 0..4 {
+                        let (x, y) = (column + 4 * (tile % 8), row + 4 * (tile / 8));
+                        *counts.entry(early(x, y)).or_default() += 1;
+                    }
+                }
+                // The old arrangement gave one set to the whole class (k = 4) or one per
+                // row parity (k = 2): a share of 1 or 1/2.
+                let most = counts.values().max().copied().unwrap_or(0);
+                assert!(
+                    most * 2 < 256,
+                    "k = {k}: column class {column}: one subset set for {most} of 256 pixels"
+                );
+            }
+        }
+        for len in [1u32, 2, 3, 9, 16, 100, 4096] {
+            for seed in [0u32, 1, 0xdead_beef] {
+                let image: std::collections::BTreeSet<u32> =
+                    (0..len).map(|i| permute(i, len, seed)).collect();
+                assert_eq!(image.len() as u32, len, "a permutation of 0..{len}");
             }
         }
     }
