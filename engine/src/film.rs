@@ -481,10 +481,15 @@ impl Film {
                         .insert(key, exr::meta::attribute::AttributeValue::Text(value));
                 }
             }
-            image.write().to_file(tmp).map_err(|e| e.to_string())?;
             // The exr crate keeps custom attributes in a hash map and writes them in its
-            // (per-process random) order; sorting them makes equal images equal files.
-            let mut bytes = std::fs::read(tmp).map_err(|e| e.to_string())?;
+            // (per-process random) order; sorting them in memory before the one write to
+            // disk makes equal images equal files.
+            let mut bytes = std::io::Cursor::new(Vec::new());
+            image
+                .write()
+                .to_buffered(&mut bytes)
+                .map_err(|e| e.to_string())?;
+            let mut bytes = bytes.into_inner();
             sort_exr_header_attributes(&mut bytes)?;
             std::fs::write(tmp, bytes).map_err(|e| e.to_string())
         })
