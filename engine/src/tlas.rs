@@ -116,9 +116,6 @@ enum Unusable {
     UnknownGeometry,
 }
 
-/// An instance's world box and record, or why it is left out.
-type Prepared = Result<(Aabb, InstanceRecord), Unusable>;
-
 /// The instance's geometry and world → object transform, or why it cannot enter the tree.
 fn usable<'a>(
     library: &'a GeometryLibrary,
@@ -158,10 +155,6 @@ fn record(
         geometry: desc.geometry,
         id,
     })
-}
-
-fn prepare(library: &GeometryLibrary, id: u32, desc: &InstanceDesc) -> Prepared {
-    Ok((world_bounds(library, desc)?, record(library, id, desc)?))
 }
 
 /// Summed surface area of instance boxes (at least the smallest positive f64, so a ratio
@@ -272,11 +265,12 @@ impl TopLevel {
             .zip(self.instances.par_iter())
             .try_for_each(|(out, record)| {
                 let instance = record.id;
-                match prepare(library, instance, &instances[instance as usize]) {
-                    Ok((_, moved)) if moved.geometry != record.geometry => {
+                let desc = &instances[instance as usize];
+                match world_bounds(library, desc) {
+                    Ok(_) if desc.geometry != record.geometry => {
                         Err(RefitRefusal::GeometryChanged { instance })
                     }
-                    Ok((bounds, _)) if is_hittable(&bounds) => {
+                    Ok(bounds) if is_hittable(&bounds) => {
                         *out = bounds;
                         Ok(())
                     }
