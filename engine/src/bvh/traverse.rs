@@ -169,12 +169,10 @@ struct Stack {
 
 impl Stack {
     #[inline(always)]
-    fn new(first: Pending) -> Self {
-        let mut inline = [Pending::default(); INLINE_STACK];
-        inline[0] = first;
+    fn new() -> Self {
         Self {
-            inline,
-            len: 1,
+            inline: [Pending::default(); INLINE_STACK],
+            len: 0,
             spill: Vec::new(),
         }
     }
@@ -253,18 +251,19 @@ impl Bvh {
         }
         let node_ray = NodeRay::new(ray);
         let mut t_max = ray.t_max;
-        let mut stack = Stack::new(Pending {
+        // The nearest hit child stays in `current` instead of going through the stack:
+        // most nodes hand on exactly one child, and a push and pop per node cost as much
+        // as its box test.
+        let mut current = Pending {
             first: 0,
             count: 0,
             t: 0.0,
-        });
-        while let Some(entry) = stack.pop() {
-            if entry.t >= t_max {
-                continue;
-            }
-            if entry.count > 0 {
-                let first = entry.first as usize;
-                for slot in first..first + entry.count as usize {
+        };
+        let mut stack = Stack::new();
+        loop {
+            if current.count > 0 {
+                let first = current.first as usize;
+                for slot in first..first + current.count as usize {
                     stats.primitive_tests += 1;
                     let (t, stop) = visit(slot, t_max);
                     t_max = t;
@@ -272,40 +271,64 @@ impl Bvh {
                         return;
                     }
                 }
-                continue;
-            }
-            let node = &self.wide[entry.first as usize];
-            stats.nodes_visited += 1;
-            let (t, mut mask) = node_ray.hit_children(node, t_max);
-            let t = t.to_array();
-            let child = |lane: usize| Pending {
-                first: node.children[lane],
-                count: node.counts[lane],
-                t: t[lane],
-            };
-            if mask & mask.wrapping_sub(1) == 0 {
-                // Zero or one child hit: the common case needs no sorting.
+            } else {
+                let node = &self.wide[current.first as usize];
+                stats.nodes_visited += 1;
+                let (t, mut mask) = node_ray.hit_children(node, t_max);
+                let t = t.to_array();
+                let child = |lane: usize| Pending {
+                    first: node.children[lane],
+                    count: node.counts[lane],
+                    t: t[lane],
+                };
                 if mask != 0 {
-                    stack.push(child(mask.trailing_zeros() as usize));
+                    let a = child(mask.trailing_zeros() as usize);
+                    mask &= mask - 1;
+                    if mask == 0 {
+                        current = a;
+                        continue;
+                    }
+                    let b = child(mask.trailing_zeros() as usize);
+                    mask &= mask - 1;
+                    if mask == 0 {
+                        let (near, far) = if b.t < a.t { (b, a) } else { (a, b) };
+                        stack.push(far);
+                        current = near;
+                        continue;
+                    }
+                    // Three or four: sort them, push all but the nearest farthest first.
+                    let mut hits = [a, b, a, a];
+                    let mut n = 2;
+                    if hits[1].t > hits[0].t {
+                        hits.swap(0, 1);
+                    }
+                    while mask != 0 {
+                        let entry = child(mask.trailing_zeros() as usize);
+                        mask &= mask - 1;
+                        let mut i = n;
+                        while i > 0 && hits[i - 1].t < entry.t {
+                            hits[i] = hits[i - 1];
+                            i -= 1;
+                        }
+                        hits[i] = entry;
+                        n += 1;
+                    }
+                    for entry in &hits[..n - 1] {
+                        stack.push(*entry);
+                    }
+                    current = hits[n - 1];
+                    continue;
                 }
-                continue;
             }
-            // Push hit children farthest first, so the nearest is popped next.
-            let mut hits = [Pending::default(); 4];
-            let mut n = 0;
-            while mask != 0 {
-                let entry = child(mask.trailing_zeros() as usize);
-                mask &= mask - 1;
-                let mut i = n;
-                while i > 0 && hits[i - 1].t < entry.t {
-                    hits[i] = hits[i - 1];
-                    i -= 1;
+            // Next: the nearest pending subtree still in front of the closest hit.
+            loop {
+                let Some(entry) = stack.pop() else {
+                    return;
+                };
+                if entry.t < t_max {
+                    current = entry;
+                    break;
                 }
-                hits[i] = entry;
-                n += 1;
-            }
-            for entry in &hits[..n] {
-                stack.push(*entry);
             }
         }
     }
