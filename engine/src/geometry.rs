@@ -1,6 +1,7 @@
 //! Species geometry: each mesh with its bottom-level BVH, built once and shared by every
 //! instance, collected in the [`GeometryLibrary`].
 
+use crate::bvh::simd::{NodeKernel, with_node_kernel};
 use crate::bvh::{BuildParams, Bvh, TraversalStats};
 use crate::math::{Aabb, Ray};
 use crate::mesh::{MeshError, TriangleMesh};
@@ -72,20 +73,33 @@ impl Geometry {
         &self,
         ray: &Ray,
         stats: &mut TraversalStats,
+        accept: impl FnMut(u32, &TriangleHit) -> bool,
+    ) -> Option<GeometryHit> {
+        with_node_kernel!(kernel => self.intersect_closest_with(kernel, ray, stats, accept))
+    }
+
+    /// [`intersect_closest`](Self::intersect_closest) with the box tests of `kernel`.
+    #[inline(always)]
+    pub fn intersect_closest_with(
+        &self,
+        kernel: impl NodeKernel,
+        ray: &Ray,
+        stats: &mut TraversalStats,
         mut accept: impl FnMut(u32, &TriangleHit) -> bool,
     ) -> Option<GeometryHit> {
         let wray = WatertightRay::new(ray);
         let mut best = None;
-        self.bvh.traverse_closest(ray, stats, |slot, t_max| {
-            let [p0, p1, p2] = self.corners[slot];
-            let hit = wray.intersect(p0, p1, p2, t_max)?;
-            let triangle = self.bvh.prim_indices[slot];
-            if !accept(triangle, &hit) {
-                return None;
-            }
-            best = Some(GeometryHit { triangle, hit });
-            Some(hit.t)
-        });
+        self.bvh
+            .traverse_closest_with(kernel, ray, stats, |slot, t_max| {
+                let [p0, p1, p2] = self.corners[slot];
+                let hit = wray.intersect(p0, p1, p2, t_max)?;
+                let triangle = self.bvh.prim_indices[slot];
+                if !accept(triangle, &hit) {
+                    return None;
+                }
+                best = Some(GeometryHit { triangle, hit });
+                Some(hit.t)
+            });
         best
     }
 
@@ -95,16 +109,29 @@ impl Geometry {
         &self,
         ray: &Ray,
         stats: &mut TraversalStats,
+        accept: impl FnMut(u32, &TriangleHit) -> bool,
+    ) -> bool {
+        with_node_kernel!(kernel => self.intersect_any_with(kernel, ray, stats, accept))
+    }
+
+    /// [`intersect_any`](Self::intersect_any) with the box tests of `kernel`.
+    #[inline(always)]
+    pub fn intersect_any_with(
+        &self,
+        kernel: impl NodeKernel,
+        ray: &Ray,
+        stats: &mut TraversalStats,
         mut accept: impl FnMut(u32, &TriangleHit) -> bool,
     ) -> bool {
         let wray = WatertightRay::new(ray);
-        self.bvh.traverse_any(ray, stats, |slot, t_max| {
-            let [p0, p1, p2] = self.corners[slot];
-            match wray.intersect(p0, p1, p2, t_max) {
-                Some(hit) => accept(self.bvh.prim_indices[slot], &hit),
-                None => false,
-            }
-        })
+        self.bvh
+            .traverse_any_with(kernel, ray, stats, |slot, t_max| {
+                let [p0, p1, p2] = self.corners[slot];
+                match wray.intersect(p0, p1, p2, t_max) {
+                    Some(hit) => accept(self.bvh.prim_indices[slot], &hit),
+                    None => false,
+                }
+            })
     }
 
     /// Heap bytes held (mesh, BVH, corner copy).

@@ -8,6 +8,7 @@
 //! a camera's allowance into opaque hits.
 
 use crate::bvh::TraversalStats;
+use crate::bvh::simd::{NodeKernel, with_node_kernel};
 use crate::camera::{Camera, CameraView};
 use crate::film::{FrameBuffer, Tile, TileResult};
 use crate::geometry::GeometryLibrary;
@@ -221,10 +222,21 @@ impl<'a> RenderScene<'a> {
         curve: Option<&TransparencyCurve>,
         stats: &mut TraversalStats,
     ) -> Option<(Hit, bool)> {
+        with_node_kernel!(kernel => self.closest_adaptive_with(kernel, ray, curve, stats))
+    }
+
+    #[inline(always)]
+    fn closest_adaptive_with(
+        &self,
+        kernel: impl NodeKernel,
+        ray: &Ray,
+        curve: Option<&TransparencyCurve>,
+        stats: &mut TraversalStats,
+    ) -> Option<(Hit, bool)> {
         if !self.shaders.needs_hit_filter() {
             return self
                 .top_level
-                .intersect_closest(self.geometry, ray, stats, |_| true)
+                .intersect_closest_with(kernel, self.geometry, ray, stats, |_| true)
                 .map(|hit| (hit, false));
         }
         let mut filter = TraversalStats::default();
@@ -233,15 +245,15 @@ impl<'a> RenderScene<'a> {
                 let mut holes = CountedHoles::new(COUNTED_HOLES);
                 let hit =
                     self.top_level
-                        .intersect_closest(self.geometry, ray, stats, |c| {
-                            match self.filter(c, ray.direction, &mut filter) {
-                                FilterOutcome::Opaque => true,
-                                FilterOutcome::Hole => {
-                                    holes.insert(c.t, ());
-                                    false
-                                }
-                                FilterOutcome::Culled => false,
+                        .intersect_closest_with(kernel, self.geometry, ray, stats, |c| match self
+                            .filter(c, ray.direction, &mut filter)
+                        {
+                            FilterOutcome::Opaque => true,
+                            FilterOutcome::Hole => {
+                                holes.insert(c.t, ());
+                                false
                             }
+                            FilterOutcome::Culled => false,
                         });
                 let t_hit = hit.map_or(f32::INFINITY, |h| h.t);
                 filter.holes_passed = holes.count_before(t_hit) as u64;
@@ -250,29 +262,29 @@ impl<'a> RenderScene<'a> {
             Some(curve) => {
                 let mut holes = CandidateHoles::new(curve.max_allowance() as usize + 1);
                 let mut last_accepted_hole = false;
-                let hit = self
-                    .top_level
-                    .intersect_closest(self.geometry, ray, stats, |c| {
-                        let outcome = self.filter(c, ray.direction, &mut filter);
-                        let accept = match outcome {
-                            FilterOutcome::Opaque => true,
-                            FilterOutcome::Culled => false,
-                            FilterOutcome::Hole => {
-                                // Enough nearer holes seen already: this one is beyond the
-                                // allowance whatever else turns up, so it may end the
-                                // search early; the walk below picks the first such hole.
-                                let beyond =
-                                    holes.count_before(c.t) >= curve.allowance(c.t) as usize;
-                                holes.insert(c.t, *c);
-                                beyond
+                let hit =
+                    self.top_level
+                        .intersect_closest_with(kernel, self.geometry, ray, stats, |c| {
+                            let outcome = self.filter(c, ray.direction, &mut filter);
+                            let accept = match outcome {
+                                FilterOutcome::Opaque => true,
+                                FilterOutcome::Culled => false,
+                                FilterOutcome::Hole => {
+                                    // Enough nearer holes seen already: this one is beyond the
+                                    // allowance whatever else turns up, so it may end the
+                                    // search early; the walk below picks the first such hole.
+                                    let beyond =
+                                        holes.count_before(c.t) >= curve.allowance(c.t) as usize;
+                                    holes.insert(c.t, *c);
+                                    beyond
+                                }
+                            };
+                            // Each accepted candidate becomes the closest so far.
+                            if accept {
+                                last_accepted_hole = outcome == FilterOutcome::Hole;
                             }
-                        };
-                        // Each accepted candidate becomes the closest so far.
-                        if accept {
-                            last_accepted_hole = outcome == FilterOutcome::Hole;
-                        }
-                        accept
-                    });
+                            accept
+                        });
                 let t_hit = hit.map_or(f32::INFINITY, |h| h.t);
                 let nearer = holes.sorted_before(t_hit);
                 if let Some(&(_, hole)) = first_opaque_hole(curve, nearer) {
@@ -306,16 +318,27 @@ impl<'a> RenderScene<'a> {
         allowance: Option<u32>,
         stats: &mut TraversalStats,
     ) -> bool {
+        with_node_kernel!(kernel => self.occluded_within_with(kernel, ray, allowance, stats))
+    }
+
+    #[inline(always)]
+    fn occluded_within_with(
+        &self,
+        kernel: impl NodeKernel,
+        ray: &Ray,
+        allowance: Option<u32>,
+        stats: &mut TraversalStats,
+    ) -> bool {
         if !self.shaders.needs_hit_filter() {
             return self
                 .top_level
-                .intersect_any(self.geometry, ray, stats, |_| true);
+                .intersect_any_with(kernel, self.geometry, ray, stats, |_| true);
         }
         let mut filter = TraversalStats::default();
         let mut holes = CountedHoles::new(allowance.map_or(0, |a| a as usize + 1));
         let hit = self
             .top_level
-            .intersect_any(self.geometry, ray, stats, |c| {
+            .intersect_any_with(kernel, self.geometry, ray, stats, |c| {
                 match self.filter(c, ray.direction, &mut filter) {
                     FilterOutcome::Opaque => true,
                     FilterOutcome::Culled => false,

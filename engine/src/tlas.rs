@@ -1,6 +1,7 @@
 //! The top-level BVH over instances. Each instance is a transform and a geometry id;
 //! traversal moves the ray into the instance's object space and descends its BLAS.
 
+use crate::bvh::simd::{NodeKernel, with_node_kernel};
 use crate::bvh::{BuildParams, Bvh, TraversalStats};
 use crate::geometry::{Geometry, GeometryId, GeometryLibrary};
 use crate::math::{Aabb, Ray};
@@ -348,38 +349,58 @@ impl TopLevel {
         library: &GeometryLibrary,
         ray: &Ray,
         stats: &mut TraversalStats,
+        filter: impl FnMut(&Candidate) -> bool,
+    ) -> Option<Hit> {
+        with_node_kernel!(kernel => self.intersect_closest_with(kernel, library, ray, stats, filter))
+    }
+
+    /// [`intersect_closest`](Self::intersect_closest) with the box tests of `kernel`, at
+    /// both levels.
+    #[inline(always)]
+    pub fn intersect_closest_with(
+        &self,
+        kernel: impl NodeKernel,
+        library: &GeometryLibrary,
+        ray: &Ray,
+        stats: &mut TraversalStats,
         mut filter: impl FnMut(&Candidate) -> bool,
     ) -> Option<Hit> {
         stats.closest_rays += 1;
         let mut inner = TraversalStats::default();
         let mut best = None;
-        self.bvh.traverse_closest(ray, stats, |slot, t_max| {
-            let record = &self.instances[slot];
-            let geometry = &library.geometries[record.geometry.0 as usize];
-            let local = Ray {
-                t_max,
-                ..ray.transformed(&record.world_to_object)
-            };
-            let found = geometry.intersect_closest(&local, &mut inner, |triangle, hit| {
-                filter(&Candidate {
+        self.bvh
+            .traverse_closest_with(kernel, ray, stats, |slot, t_max| {
+                let record = &self.instances[slot];
+                let geometry = &library.geometries[record.geometry.0 as usize];
+                let local = Ray {
+                    t_max,
+                    ..ray.transformed(&record.world_to_object)
+                };
+                let found = geometry.intersect_closest_with(
+                    kernel,
+                    &local,
+                    &mut inner,
+                    |triangle, hit| {
+                        filter(&Candidate {
+                            slot: slot as u32,
+                            instance: record.id,
+                            geometry: record.geometry,
+                            triangle,
+                            barycentrics: hit.barycentrics,
+                            t: hit.t,
+                        })
+                    },
+                )?;
+                best = Some(Candidate {
                     slot: slot as u32,
                     instance: record.id,
                     geometry: record.geometry,
-                    triangle,
-                    barycentrics: hit.barycentrics,
-                    t: hit.t,
-                })
-            })?;
-            best = Some(Candidate {
-                slot: slot as u32,
-                instance: record.id,
-                geometry: record.geometry,
-                triangle: found.triangle,
-                barycentrics: found.hit.barycentrics,
-                t: found.hit.t,
+                    triangle: found.triangle,
+                    barycentrics: found.hit.barycentrics,
+                    t: found.hit.t,
+                });
+                Some(found.hit.t)
             });
-            Some(found.hit.t)
-        });
         stats.add(&inner);
         best
     }
@@ -391,28 +412,44 @@ impl TopLevel {
         library: &GeometryLibrary,
         ray: &Ray,
         stats: &mut TraversalStats,
+        filter: impl FnMut(&Candidate) -> bool,
+    ) -> bool {
+        with_node_kernel!(kernel => self.intersect_any_with(kernel, library, ray, stats, filter))
+    }
+
+    /// [`intersect_any`](Self::intersect_any) with the box tests of `kernel`, at both
+    /// levels.
+    #[inline(always)]
+    pub fn intersect_any_with(
+        &self,
+        kernel: impl NodeKernel,
+        library: &GeometryLibrary,
+        ray: &Ray,
+        stats: &mut TraversalStats,
         mut filter: impl FnMut(&Candidate) -> bool,
     ) -> bool {
         stats.any_rays += 1;
         let mut inner = TraversalStats::default();
-        let occluded = self.bvh.traverse_any(ray, stats, |slot, t_max| {
-            let record = &self.instances[slot];
-            let geometry = &library.geometries[record.geometry.0 as usize];
-            let local = Ray {
-                t_max,
-                ..ray.transformed(&record.world_to_object)
-            };
-            geometry.intersect_any(&local, &mut inner, |triangle, hit| {
-                filter(&Candidate {
-                    slot: slot as u32,
-                    instance: record.id,
-                    geometry: record.geometry,
-                    triangle,
-                    barycentrics: hit.barycentrics,
-                    t: hit.t,
+        let occluded = self
+            .bvh
+            .traverse_any_with(kernel, ray, stats, |slot, t_max| {
+                let record = &self.instances[slot];
+                let geometry = &library.geometries[record.geometry.0 as usize];
+                let local = Ray {
+                    t_max,
+                    ..ray.transformed(&record.world_to_object)
+                };
+                geometry.intersect_any_with(kernel, &local, &mut inner, |triangle, hit| {
+                    filter(&Candidate {
+                        slot: slot as u32,
+                        instance: record.id,
+                        geometry: record.geometry,
+                        triangle,
+                        barycentrics: hit.barycentrics,
+                        t: hit.t,
+                    })
                 })
-            })
-        });
+            });
         stats.add(&inner);
         occluded
     }

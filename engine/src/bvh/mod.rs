@@ -6,6 +6,7 @@
 mod build;
 mod node;
 mod refit;
+pub mod simd;
 mod traverse;
 mod validate;
 mod wide;
@@ -15,7 +16,7 @@ pub use node::BvhNode;
 pub use refit::RefitError;
 pub use traverse::{NodeRay, TraversalStats};
 pub use validate::BvhReport;
-pub use wide::WideNode;
+pub use wide::{WIDTH, WideNode};
 
 /// Traversal stack capacity; [`build`](Bvh::build) bounds the depth below it.
 pub const MAX_DEPTH: usize = 96;
@@ -26,7 +27,7 @@ pub const MAX_DEPTH: usize = 96;
 pub struct Bvh {
     /// Binary nodes as built; empty when the BVH holds no primitive.
     pub nodes: Vec<BvhNode>,
-    /// The same tree collapsed to four children per node: what traversal walks.
+    /// The same tree collapsed to [`WIDTH`] children per node: what traversal walks.
     pub wide: Vec<WideNode>,
     /// `prim_indices[slot]` is the caller's index of the primitive in leaf slot `slot`.
     /// Primitives with empty or non-finite boxes are left out.

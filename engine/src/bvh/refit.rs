@@ -1,5 +1,5 @@
 //! Refitting: the same tree over moved primitives. Every box is recomputed bottom-up, in
-//! the binary nodes and in the 4-wide nodes traversal walks; topology and slot order stay.
+//! the binary nodes and in the wide nodes traversal walks; topology and slot order stay.
 //! A refit costs a linear pass instead of a SAH build, but the tree's quality decays as
 //! primitives move away from where it was built: [`Bvh::sah_cost`] measures by how much,
 //! so the caller can rebuild once it has degraded.
@@ -72,7 +72,7 @@ impl Bvh {
         for index in (0..self.wide.len()).rev() {
             let mut node = self.wide[index];
             let mut whole = Aabb::EMPTY;
-            for lane in 0..4 {
+            for lane in 0..super::wide::WIDTH {
                 if !node.is_used(lane) {
                     continue;
                 }

@@ -2,9 +2,10 @@
 //! hit. The caller's closure tests one primitive slot, so alpha masks and instance
 //! transforms live outside the BVH.
 
-use super::{Bvh, WideNode};
+use super::simd::{NodeKernel, with_node_kernel};
+use super::{Bvh, WIDTH, WideNode};
 use crate::math::{Ray, gamma};
-use glam::{BVec4A, Vec3A, Vec4};
+use glam::Vec3A;
 
 /// Counters a traversal updates: cheap enough to leave on in release builds. Summed per
 /// tile, then per frame.
@@ -62,27 +63,27 @@ impl TraversalStats {
     }
 }
 
-/// A ray prepared for slab tests against the four boxes of a [`WideNode`].
+/// A ray prepared for slab tests against the boxes of a [`WideNode`].
 #[derive(Clone, Copy, Debug)]
 pub struct NodeRay {
-    origin: [Vec4; 3],
-    inv_dir: [Vec4; 3],
+    pub(super) origin: [f32; 3],
+    pub(super) inv_dir: [f32; 3],
     /// Some direction component is ±0 (its reciprocal is infinite) or so small that its
     /// reciprocal overflows (then NaN): such slabs get the open treatment.
-    axis_parallel: bool,
+    pub(super) axis_parallel: bool,
 }
 
 /// Widening of the far slab distance that makes the box test conservative (Ize 2013,
 /// "Robust BVH Ray Traversal"), so watertight triangle tests are never culled early.
-const FAR_SCALE: f32 = 1.0 + 2.0 * gamma(3);
+pub(super) const FAR_SCALE: f32 = 1.0 + 2.0 * gamma(3);
 
 /// The matching narrowing of the entry distance: rounded up, it could exceed the distance
 /// of a hit on the box's face and prune that box against a farther hit found first (a
 /// closest hit 1 ulp too far; fuzz finding).
-const NEAR_SCALE: f32 = 1.0 - 2.0 * gamma(3);
+pub(super) const NEAR_SCALE: f32 = 1.0 - 2.0 * gamma(3);
 
 impl NodeRay {
-    /// Splats origin and reciprocal direction across the four lanes.
+    /// Keeps origin and reciprocal direction for the slab tests.
     #[inline]
     pub fn new(ray: &Ray) -> Self {
         // A non-zero component below 1/f32::MAX (a denormal) has an infinite reciprocal,
@@ -93,12 +94,8 @@ impl NodeRay {
         let unreliable = d.cmpne(Vec3A::ZERO) & !d.recip().is_finite_mask();
         let inv = Vec3A::select(unreliable, Vec3A::NAN, d.recip());
         Self {
-            origin: [
-                Vec4::splat(ray.origin.x),
-                Vec4::splat(ray.origin.y),
-                Vec4::splat(ray.origin.z),
-            ],
-            inv_dir: [Vec4::splat(inv.x), Vec4::splat(inv.y), Vec4::splat(inv.z)],
+            origin: ray.origin.to_array(),
+            inv_dir: inv.to_array(),
             // A NaN ray hits nothing either way; only finite rays get open slabs.
             axis_parallel: !inv.is_finite()
                 && ray.origin.is_finite()
@@ -107,43 +104,10 @@ impl NodeRay {
         }
     }
 
-    /// Entry distances of the four children and a bitmask of the lanes hit before
-    /// `t_max` (bit `i` for lane `i`).
-    #[inline]
-    pub fn hit_children(&self, node: &WideNode, t_max: f32) -> (Vec4, u32) {
-        let [ox, oy, oz] = self.origin;
-        let [ix, iy, iz] = self.inv_dir;
-        let x0 = (node.min_x - ox) * ix;
-        let x1 = (node.max_x - ox) * ix;
-        let y0 = (node.min_y - oy) * iy;
-        let y1 = (node.max_y - oy) * iy;
-        let z0 = (node.min_z - oz) * iz;
-        let z1 = (node.max_z - oz) * iz;
-        let ([x0, x1, y0, y1, z0, z1], used) = if self.axis_parallel {
-            // 0 · ∞ is NaN where the origin lies on a face of a slab the ray runs
-            // parallel to: that slab does not limit the ray (the face counts as inside,
-            // as the watertight triangle test counts edges). A NaN reciprocal (a
-            // denormal direction component) makes both distances NaN: the slab is open.
-            let open = |a: Vec4, b: Vec4| {
-                let a = Vec4::select(a.cmpeq(a), a, -b);
-                let b = Vec4::select(b.cmpeq(b), b, -a);
-                (
-                    Vec4::select(a.cmpeq(a), a, Vec4::NEG_INFINITY),
-                    Vec4::select(b.cmpeq(b), b, Vec4::INFINITY),
-                )
-            };
-            let ((x0, x1), (y0, y1), (z0, z1)) = (open(x0, x1), open(y0, y1), open(z0, z1));
-            // With every slab open an unused lane (its box at +∞) would pass and send
-            // traversal back to the root forever (fuzz finding): mask unused lanes.
-            let used = node.min_x.cmplt(Vec4::INFINITY);
-            ([x0, x1, y0, y1, z0, z1], used)
-        } else {
-            ([x0, x1, y0, y1, z0, z1], BVec4A::splat(true))
-        };
-        let t_near = x0.min(x1).max(y0.min(y1)).max(z0.min(z1)).max(Vec4::ZERO) * NEAR_SCALE;
-        let t_far = x0.max(x1).min(y0.max(y1)).min(z0.max(z1)) * FAR_SCALE;
-        let hit = t_near.cmple(t_far) & t_near.cmplt(Vec4::splat(t_max)) & used;
-        (t_near, hit.bitmask())
+    /// Entry distances of the children and a bitmask of the lanes hit before `t_max`
+    /// (bit `i` for lane `i`), on whichever SIMD kernel this machine runs.
+    pub fn hit_children(&self, node: &WideNode, t_max: f32) -> ([f32; WIDTH], u32) {
+        with_node_kernel!(kernel => kernel.hit_children(self, node, t_max))
     }
 }
 
@@ -210,10 +174,22 @@ impl Bvh {
         &self,
         ray: &Ray,
         stats: &mut TraversalStats,
+        test: impl FnMut(usize, f32) -> Option<f32>,
+    ) -> f32 {
+        with_node_kernel!(kernel => self.traverse_closest_with(kernel, ray, stats, test))
+    }
+
+    /// [`traverse_closest`](Self::traverse_closest) with the box tests of `kernel`.
+    #[inline(always)]
+    pub fn traverse_closest_with(
+        &self,
+        kernel: impl NodeKernel,
+        ray: &Ray,
+        stats: &mut TraversalStats,
         mut test: impl FnMut(usize, f32) -> Option<f32>,
     ) -> f32 {
         let mut t_max = ray.t_max;
-        self.traverse(ray, stats, |slot, t| {
+        kernel.traverse(self, ray, stats, |slot, t| {
             if let Some(hit_t) = test(slot, t) {
                 t_max = hit_t;
             }
@@ -228,20 +204,34 @@ impl Bvh {
         &self,
         ray: &Ray,
         stats: &mut TraversalStats,
+        test: impl FnMut(usize, f32) -> bool,
+    ) -> bool {
+        with_node_kernel!(kernel => self.traverse_any_with(kernel, ray, stats, test))
+    }
+
+    /// [`traverse_any`](Self::traverse_any) with the box tests of `kernel`.
+    #[inline(always)]
+    pub fn traverse_any_with(
+        &self,
+        kernel: impl NodeKernel,
+        ray: &Ray,
+        stats: &mut TraversalStats,
         mut test: impl FnMut(usize, f32) -> bool,
     ) -> bool {
         let mut found = false;
-        self.traverse(ray, stats, |slot, t| {
+        kernel.traverse(self, ray, stats, |slot, t| {
             found = test(slot, t);
             (t, found)
         });
         found
     }
 
-    /// The shared loop over the wide tree: `visit(slot, t_max) -> (new t_max, stop)`.
+    /// The shared loop over the wide tree: `visit(slot, t_max) -> (new t_max, stop)`,
+    /// with the box tests of `kernel`.
     #[inline(always)]
-    fn traverse(
+    pub(super) fn traverse_with(
         &self,
+        kernel: impl NodeKernel,
         ray: &Ray,
         stats: &mut TraversalStats,
         mut visit: impl FnMut(usize, f32) -> (f32, bool),
@@ -274,8 +264,7 @@ impl Bvh {
             } else {
                 let node = &self.wide[current.first as usize];
                 stats.nodes_visited += 1;
-                let (t, mut mask) = node_ray.hit_children(node, t_max);
-                let t = t.to_array();
+                let (t, mut mask) = kernel.hit_children(&node_ray, node, t_max);
                 let child = |lane: usize| Pending {
                     first: node.children[lane],
                     count: node.counts[lane],
@@ -296,8 +285,9 @@ impl Bvh {
                         current = near;
                         continue;
                     }
-                    // Three or four: sort them, push all but the nearest farthest first.
-                    let mut hits = [a, b, a, a];
+                    // More: sort them, push all but the nearest farthest first.
+                    let mut hits = [a; WIDTH];
+                    hits[1] = b;
                     let mut n = 2;
                     if hits[1].t > hits[0].t {
                         hits.swap(0, 1);

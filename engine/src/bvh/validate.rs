@@ -22,7 +22,7 @@ impl Bvh {
     /// Checks that the tree is well formed for `prim_bounds` (the boxes it was built from):
     /// children inside the array and after their parent, every node reached once, every
     /// leaf slot owned by exactly one leaf, every valid primitive referenced exactly once,
-    /// boxes nested, depth bounded — for the binary tree and for its 4-wide collapse.
+    /// boxes nested, depth bounded — for the binary tree and for its wide collapse.
     pub fn validate(&self, prim_bounds: &[Aabb]) -> Result<BvhReport, String> {
         let valid = |b: &Aabb| !b.is_empty() && b.min.is_finite() && b.max.is_finite();
         let mut expected: Vec<u32> = (0..prim_bounds.len() as u32)
@@ -120,7 +120,7 @@ impl Bvh {
         Ok(report)
     }
 
-    /// The same checks on the 4-wide tree that traversal walks.
+    /// The same checks on the wide tree that traversal walks.
     fn validate_wide(&self, prim_bounds: &[Aabb]) -> Result<(), String> {
         if self.wide.is_empty() {
             return if self.nodes.is_empty() {
@@ -137,7 +137,7 @@ impl Bvh {
                 return Err(format!("wide node {index} reached twice"));
             }
             let node = &self.wide[index];
-            for lane in 0..4 {
+            for lane in 0..super::wide::WIDTH {
                 if !node.is_used(lane) {
                     if node.counts[lane] != 0 {
                         return Err(format!(

@@ -1,12 +1,16 @@
-//! The 4-wide BVH that traversal walks: the binary build collapsed so each node holds
-//! up to four children whose boxes are tested together, one SIMD lane each (the layout
-//! of Embree's BVH4 and obvhs' wide BVHs).
+//! The 8-wide BVH that traversal walks: the binary build collapsed so each node holds
+//! up to eight children whose boxes are tested together, one SIMD lane each (the layout
+//! of Embree's BVH8 and obvhs' wide BVHs): one AVX2 register per coordinate, or two SSE
+//! registers where AVX2 is missing.
 
 use super::BvhNode;
 use crate::math::Aabb;
-use glam::{Vec3A, Vec4};
+use glam::Vec3A;
 
-/// Four child boxes in structure-of-arrays form, with what each child is.
+/// Children per wide node.
+pub const WIDTH: usize = 8;
+
+/// Eight child boxes in structure-of-arrays form, with what each child is.
 ///
 /// Invariants (checked by [`super::Bvh::validate`]): lane `i` with `counts[i] == 0` and a
 /// finite box is an interior child at wide index `children[i]`, after this node; with
@@ -15,31 +19,31 @@ use glam::{Vec3A, Vec4};
 #[derive(Clone, Copy, Debug, PartialEq)]
 #[repr(C, align(64))]
 pub struct WideNode {
-    /// Lower x of the four children.
-    pub min_x: Vec4,
+    /// Lower x of the children.
+    pub min_x: [f32; WIDTH],
     /// Upper x.
-    pub max_x: Vec4,
+    pub max_x: [f32; WIDTH],
     /// Lower y.
-    pub min_y: Vec4,
+    pub min_y: [f32; WIDTH],
     /// Upper y.
-    pub max_y: Vec4,
+    pub max_y: [f32; WIDTH],
     /// Lower z.
-    pub min_z: Vec4,
+    pub min_z: [f32; WIDTH],
     /// Upper z.
-    pub max_z: Vec4,
+    pub max_z: [f32; WIDTH],
     /// Interior child: its wide node index. Leaf child: its first slot.
-    pub children: [u32; 4],
+    pub children: [u32; WIDTH],
     /// Leaf child: its slot count. Interior or unused: 0.
-    pub counts: [u32; 4],
+    pub counts: [u32; WIDTH],
 }
 
-const _: () = assert!(std::mem::size_of::<WideNode>() == 128);
+const _: () = assert!(std::mem::size_of::<WideNode>() == 256);
 
 const UNUSED: f32 = f32::INFINITY;
 
 impl WideNode {
-    fn empty() -> Self {
-        let inf = Vec4::splat(UNUSED);
+    pub(super) fn empty() -> Self {
+        let inf = [UNUSED; WIDTH];
         Self {
             min_x: inf,
             max_x: inf,
@@ -47,8 +51,8 @@ impl WideNode {
             max_y: inf,
             min_z: inf,
             max_z: inf,
-            children: [0; 4],
-            counts: [0; 4],
+            children: [0; WIDTH],
+            counts: [0; WIDTH],
         }
     }
 
@@ -88,8 +92,8 @@ impl WideNode {
     }
 }
 
-/// Collapses a binary BVH into a 4-wide one: each wide node takes the children of a
-/// binary node and keeps opening its largest interior child until it has four.
+/// Collapses a binary BVH into a wide one: each wide node takes the children of a
+/// binary node and keeps opening its largest interior child until it has [`WIDTH`].
 pub fn collapse(binary: &[BvhNode]) -> Vec<WideNode> {
     let mut wide = Vec::with_capacity(binary.len() / 3 + 1);
     if let Some(root) = binary.first() {
@@ -110,9 +114,11 @@ fn collapse_node(binary: &[BvhNode], index: usize, wide: &mut Vec<WideNode>) -> 
     let first = binary[index].first() as usize;
     // A fixed array: a heap-allocated lane list per node cost more than the rest of the
     // collapse together.
-    let mut lanes = [first, first + 1, 0, 0];
+    let mut lanes = [0; WIDTH];
+    lanes[0] = first;
+    lanes[1] = first + 1;
     let mut len = 2;
-    while len < 4 {
+    while len < WIDTH {
         let mut widest: Option<(usize, f32)> = None;
         for (position, &node) in lanes[..len].iter().enumerate() {
             let candidate = &binary[node];

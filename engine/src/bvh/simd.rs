@@ -1,0 +1,326 @@
+//! The box test of a wide node on two kernels that give the same bits: a portable one
+//! (two SSE halves through glam) and AVX2 (one 8-lane register per coordinate), picked
+//! once at run time. This module holds the engine's only `unsafe`: calls into
+//! `#[target_feature]` functions, allowed by an [`Avx2`] value that exists only when the
+//! CPU has AVX2.
+
+use super::traverse::{FAR_SCALE, NEAR_SCALE, NodeRay};
+use super::{Bvh, TraversalStats, WIDTH, WideNode};
+use crate::math::Ray;
+use glam::{BVec4A, Vec4};
+
+/// Evaluates `$body` with `$kernel` bound to the best [`NodeKernel`] of this CPU.
+/// Dispatch once per query, at its top: nested traversals inside `$body` take the
+/// kernel instead of dispatching again.
+macro_rules! with_node_kernel {
+    ($kernel:ident => $body:expr) => {{
+        #[cfg(target_arch = "x86_64")]
+        let avx2 = $crate::bvh::simd::Avx2::detect();
+        #[cfg(not(target_arch = "x86_64"))]
+        let avx2: Option<()> = None;
+        match avx2 {
+            #[cfg(target_arch = "x86_64")]
+            Some($kernel) => $body,
+            _ => {
+                let $kernel = $crate::bvh::simd::Portable;
+                $body
+            }
+        }
+    }};
+}
+pub(crate) use with_node_kernel;
+
+/// Slab tests of a ray against the eight child boxes of a node, and the traversal loop
+/// built on them.
+pub trait NodeKernel: Copy {
+    /// [`Bvh::traverse_with`] on this kernel: with AVX2, one function compiled for it,
+    /// so the box tests inline into the loop (and the caller's primitive tests with it).
+    fn traverse(
+        self,
+        bvh: &Bvh,
+        ray: &Ray,
+        stats: &mut TraversalStats,
+        visit: impl FnMut(usize, f32) -> (f32, bool),
+    );
+
+    /// Entry distances of the children and a bitmask of the lanes whose box the ray
+    /// enters before `t_max` (bit `i` for lane `i`).
+    fn hit_children(self, ray: &NodeRay, node: &WideNode, t_max: f32) -> ([f32; WIDTH], u32);
+}
+
+/// The kernel for any CPU: two four-lane halves.
+#[derive(Clone, Copy, Debug)]
+pub struct Portable;
+
+impl NodeKernel for Portable {
+    #[inline(always)]
+    fn traverse(
+        self,
+        bvh: &Bvh,
+        ray: &Ray,
+        stats: &mut TraversalStats,
+        visit: impl FnMut(usize, f32) -> (f32, bool),
+    ) {
+        bvh.traverse_with(self, ray, stats, visit)
+    }
+
+    #[inline(always)]
+    fn hit_children(self, ray: &NodeRay, node: &WideNode, t_max: f32) -> ([f32; WIDTH], u32) {
+        let mut t = [0.0; WIDTH];
+        let mut mask = 0;
+        for half in 0..WIDTH / 4 {
+            let (lane_t, lane_mask) = hit_half(ray, node, half * 4, t_max);
+            t[half * 4..half * 4 + 4].copy_from_slice(&lane_t.to_array());
+            mask |= lane_mask << (half * 4);
+        }
+        (t, mask)
+    }
+}
+
+/// Lanes `first .. first + 4` of the slab test. The operations and their order are
+/// those of the AVX2 kernel, so both give the same bits.
+#[inline(always)]
+fn hit_half(ray: &NodeRay, node: &WideNode, first: usize, t_max: f32) -> (Vec4, u32) {
+    let lanes = |a: &[f32; WIDTH]| Vec4::from_slice(&a[first..first + 4]);
+    let [ox, oy, oz] = ray.origin.map(Vec4::splat);
+    let [ix, iy, iz] = ray.inv_dir.map(Vec4::splat);
+    let min_x = lanes(&node.min_x);
+    let x0 = (min_x - ox) * ix;
+    let x1 = (lanes(&node.max_x) - ox) * ix;
+    let y0 = (lanes(&node.min_y) - oy) * iy;
+    let y1 = (lanes(&node.max_y) - oy) * iy;
+    let z0 = (lanes(&node.min_z) - oz) * iz;
+    let z1 = (lanes(&node.max_z) - oz) * iz;
+    let ([x0, x1, y0, y1, z0, z1], used) = if ray.axis_parallel {
+        // 0 · ∞ is NaN where the origin lies on a face of a slab the ray runs parallel
+        // to: that slab does not limit the ray (the face counts as inside, as the
+        // watertight triangle test counts edges). A NaN reciprocal (a denormal direction
+        // component) makes both distances NaN: the slab is open.
+        let open = |a: Vec4, b: Vec4| {
+            let a = Vec4::select(a.cmpeq(a), a, -b);
+            let b = Vec4::select(b.cmpeq(b), b, -a);
+            (
+                Vec4::select(a.cmpeq(a), a, Vec4::NEG_INFINITY),
+                Vec4::select(b.cmpeq(b), b, Vec4::INFINITY),
+            )
+        };
+        let ((x0, x1), (y0, y1), (z0, z1)) = (open(x0, x1), open(y0, y1), open(z0, z1));
+        // With every slab open an unused lane (its box at +∞) would pass and send
+        // traversal back to the root forever (fuzz finding): mask unused lanes.
+        ([x0, x1, y0, y1, z0, z1], min_x.cmplt(Vec4::INFINITY))
+    } else {
+        ([x0, x1, y0, y1, z0, z1], BVec4A::splat(true))
+    };
+    let t_near = x0.min(x1).max(y0.min(y1)).max(z0.min(z1)).max(Vec4::ZERO) * NEAR_SCALE;
+    let t_far = x0.max(x1).min(y0.max(y1)).min(z0.max(z1)) * FAR_SCALE;
+    let hit = t_near.cmple(t_far) & t_near.cmplt(Vec4::splat(t_max)) & used;
+    (t_near, hit.bitmask())
+}
+
+#[cfg(target_arch = "x86_64")]
+pub use avx2::Avx2;
+
+#[cfg(target_arch = "x86_64")]
+#[expect(
+    unsafe_code,
+    reason = "AVX2 kernels are #[target_feature] functions: calling them, and loading and \
+              storing 256-bit registers, is unsafe; an Avx2 value proves the CPU has it"
+)]
+mod avx2 {
+    use super::{FAR_SCALE, NEAR_SCALE, NodeKernel, NodeRay, WIDTH, WideNode};
+    use crate::bvh::{Bvh, TraversalStats};
+    use crate::math::Ray;
+    use std::arch::x86_64::*;
+    use std::sync::OnceLock;
+
+    /// Proof that this CPU runs AVX2: only [`detect`](Self::detect) makes one.
+    #[derive(Clone, Copy, Debug)]
+    pub struct Avx2 {
+        _detected: (),
+    }
+
+    /// Whether the AVX2 kernel runs: the CPU has AVX2 and `SYLVA_SIMD` is not `portable`.
+    static ENABLED: OnceLock<bool> = OnceLock::new();
+
+    impl Avx2 {
+        /// The token when this CPU has AVX2, unless the environment variable
+        /// `SYLVA_SIMD=portable` asks for the portable kernel (to compare the two).
+        #[inline(always)]
+        pub fn detect() -> Option<Self> {
+            let enabled = *ENABLED.get_or_init(|| {
+                std::env::var("SYLVA_SIMD").map_or(true, |v| v != "portable")
+                    && Self::on_this_cpu().is_some()
+            });
+            enabled.then_some(Self { _detected: () })
+        }
+
+        /// The token when this CPU has AVX2, whatever `SYLVA_SIMD` says.
+        pub fn on_this_cpu() -> Option<Self> {
+            is_x86_feature_detected!("avx2").then_some(Self { _detected: () })
+        }
+    }
+
+    #[target_feature(enable = "avx2")]
+    #[inline]
+    fn traverse(
+        bvh: &Bvh,
+        ray: &Ray,
+        stats: &mut TraversalStats,
+        visit: impl FnMut(usize, f32) -> (f32, bool),
+    ) {
+        bvh.traverse_with(Avx2 { _detected: () }, ray, stats, visit)
+    }
+
+    impl NodeKernel for Avx2 {
+        #[inline(always)]
+        fn traverse(
+            self,
+            bvh: &Bvh,
+            ray: &Ray,
+            stats: &mut TraversalStats,
+            visit: impl FnMut(usize, f32) -> (f32, bool),
+        ) {
+            // SAFETY: `self` exists only when `detect` found AVX2 on this CPU.
+            unsafe { traverse(bvh, ray, stats, visit) }
+        }
+
+        #[inline(always)]
+        fn hit_children(self, ray: &NodeRay, node: &WideNode, t_max: f32) -> ([f32; WIDTH], u32) {
+            // SAFETY: `self` exists only when `detect` found AVX2 on this CPU.
+            unsafe { hit_children(ray, node, t_max) }
+        }
+    }
+
+    /// The portable kernel's operations in the same order, eight lanes at once.
+    #[target_feature(enable = "avx2")]
+    #[inline]
+    fn hit_children(ray: &NodeRay, node: &WideNode, t_max: f32) -> ([f32; WIDTH], u32) {
+        // SAFETY: the arrays hold WIDTH = 8 floats, one 256-bit register's worth.
+        let load = |a: &[f32; WIDTH]| unsafe { _mm256_loadu_ps(a.as_ptr()) };
+        let [ox, oy, oz] = ray.origin.map(|v| _mm256_set1_ps(v));
+        let [ix, iy, iz] = ray.inv_dir.map(|v| _mm256_set1_ps(v));
+        let min_x = load(&node.min_x);
+        let x0 = _mm256_mul_ps(_mm256_sub_ps(min_x, ox), ix);
+        let x1 = _mm256_mul_ps(_mm256_sub_ps(load(&node.max_x), ox), ix);
+        let y0 = _mm256_mul_ps(_mm256_sub_ps(load(&node.min_y), oy), iy);
+        let y1 = _mm256_mul_ps(_mm256_sub_ps(load(&node.max_y), oy), iy);
+        let z0 = _mm256_mul_ps(_mm256_sub_ps(load(&node.min_z), oz), iz);
+        let z1 = _mm256_mul_ps(_mm256_sub_ps(load(&node.max_z), oz), iz);
+        let ([x0, x1, y0, y1, z0, z1], used) = if ray.axis_parallel {
+            let is_number = |a: __m256| _mm256_cmp_ps::<_CMP_EQ_OQ>(a, a);
+            let negate = |a: __m256| _mm256_xor_ps(a, _mm256_set1_ps(-0.0));
+            // See the portable kernel: NaN distances open their slab.
+            let open = |a: __m256, b: __m256| {
+                let a = _mm256_blendv_ps(negate(b), a, is_number(a));
+                let b = _mm256_blendv_ps(negate(a), b, is_number(b));
+                (
+                    _mm256_blendv_ps(_mm256_set1_ps(f32::NEG_INFINITY), a, is_number(a)),
+                    _mm256_blendv_ps(_mm256_set1_ps(f32::INFINITY), b, is_number(b)),
+                )
+            };
+            let ((x0, x1), (y0, y1), (z0, z1)) = (open(x0, x1), open(y0, y1), open(z0, z1));
+            let used = _mm256_cmp_ps::<_CMP_LT_OS>(min_x, _mm256_set1_ps(f32::INFINITY));
+            ([x0, x1, y0, y1, z0, z1], used)
+        } else {
+            let all = _mm256_castsi256_ps(_mm256_set1_epi32(-1));
+            ([x0, x1, y0, y1, z0, z1], all)
+        };
+        let near = _mm256_max_ps(
+            _mm256_max_ps(
+                _mm256_max_ps(_mm256_min_ps(x0, x1), _mm256_min_ps(y0, y1)),
+                _mm256_min_ps(z0, z1),
+            ),
+            _mm256_setzero_ps(),
+        );
+        let t_near = _mm256_mul_ps(near, _mm256_set1_ps(NEAR_SCALE));
+        let far = _mm256_min_ps(
+            _mm256_min_ps(_mm256_max_ps(x0, x1), _mm256_max_ps(y0, y1)),
+            _mm256_max_ps(z0, z1),
+        );
+        let t_far = _mm256_mul_ps(far, _mm256_set1_ps(FAR_SCALE));
+        let hit = _mm256_and_ps(
+            _mm256_and_ps(
+                _mm256_cmp_ps::<_CMP_LE_OS>(t_near, t_far),
+                _mm256_cmp_ps::<_CMP_LT_OS>(t_near, _mm256_set1_ps(t_max)),
+            ),
+            used,
+        );
+        let mut t = [0.0; WIDTH];
+        // SAFETY: `t` holds WIDTH = 8 floats.
+        unsafe { _mm256_storeu_ps(t.as_mut_ptr(), t_near) };
+        (t, _mm256_movemask_ps(hit) as u32)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn uniform(state: &mut u64) -> f32 {
+        *state = state
+            .wrapping_mul(6364136223846793005)
+            .wrapping_add(1442695040888963407);
+        (*state >> 40) as f32 / (1u64 << 24) as f32
+    }
+
+    /// Nodes and rays with the awkward values: unused lanes, boxes the origin sits on,
+    /// axis-parallel and denormal directions, NaN.
+    fn cases() -> Vec<(NodeRay, WideNode, f32)> {
+        let mut state = 7;
+        let specials = [0.0, -0.0, 1e-40, -1e-40, f32::INFINITY, f32::NAN, 1.0, -1.0];
+        let mut out = Vec::new();
+        for i in 0..4000 {
+            let mut node = WideNode::empty();
+            for lane in 0..WIDTH {
+                if (i + lane) % 5 == 0 {
+                    continue;
+                }
+                let mut c = [0.0; 6];
+                for v in &mut c {
+                    *v = (uniform(&mut state) - 0.5) * 8.0;
+                }
+                if (i + lane) % 3 == 0 {
+                    // Flat, as a leaf's box can be: entry and exit coincide.
+                    c[3 + lane % 3] = c[lane % 3];
+                }
+                let b = crate::math::Aabb {
+                    min: glam::Vec3A::new(c[0].min(c[3]), c[1].min(c[4]), c[2].min(c[5])),
+                    max: glam::Vec3A::new(c[0].max(c[3]), c[1].max(c[4]), c[2].max(c[5])),
+                };
+                node.set_box(lane, b);
+            }
+            let mut origin = [0.0; 3].map(|_: f32| (uniform(&mut state) - 0.5) * 10.0);
+            let mut direction = [0.0; 3].map(|_: f32| uniform(&mut state) - 0.5);
+            if i % 3 == 0 {
+                direction[i % 3] = specials[(i / 3) % specials.len()];
+            }
+            if i % 7 == 0 {
+                // On a face of lane 1's box.
+                origin[0] = node.min_x[1];
+            }
+            let ray = crate::math::Ray::new(origin.into(), direction.into());
+            let t_max = [f32::INFINITY, 3.0, 0.5][i % 3];
+            out.push((NodeRay::new(&ray), node, t_max));
+        }
+        out
+    }
+
+    #[cfg(target_arch = "x86_64")]
+    #[test]
+    fn avx2_and_portable_kernels_give_the_same_bits() {
+        let Some(avx2) = Avx2::on_this_cpu() else {
+            panic!("this test needs an AVX2 machine (CI has one)");
+        };
+        let mut hits = 0;
+        for (ray, node, t_max) in cases() {
+            let (t_a, m_a) = avx2.hit_children(&ray, &node, t_max);
+            let (t_p, m_p) = Portable.hit_children(&ray, &node, t_max);
+            assert_eq!(m_a, m_p, "masks differ for {ray:?} {node:?}");
+            for lane in 0..WIDTH {
+                assert_eq!(t_a[lane].to_bits(), t_p[lane].to_bits(), "lane {lane}");
+            }
+            hits += m_a.count_ones();
+        }
+        assert!(hits > 1000, "too few boxes hit ({hits}) to compare");
+    }
+}
