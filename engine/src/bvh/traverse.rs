@@ -2,7 +2,7 @@
 //! hit. The caller's closure tests one primitive slot, so alpha masks and instance
 //! transforms live outside the BVH.
 
-use super::simd::{NodeKernel, with_node_kernel};
+use super::simd::{NodeKernel, prefetch_node, with_node_kernel};
 use super::{Bvh, WIDTH, WideNode};
 use crate::math::{Ray, gamma};
 use glam::Vec3A;
@@ -226,6 +226,17 @@ impl Bvh {
         found
     }
 
+    /// Asks for a pending interior node's memory ahead of its visit: node loads that miss
+    /// the cache are a fifth of traversal time.
+    #[inline(always)]
+    fn prefetch(&self, entry: Pending) {
+        if entry.count == 0
+            && let Some(node) = self.wide.get(entry.first as usize)
+        {
+            prefetch_node(node);
+        }
+    }
+
     /// The shared loop over the wide tree: `visit(slot, t_max) -> (new t_max, stop)`,
     /// with the box tests of `kernel`.
     #[inline(always)]
@@ -281,6 +292,7 @@ impl Bvh {
                     mask &= mask - 1;
                     if mask == 0 {
                         let (near, far) = if b.t < a.t { (b, a) } else { (a, b) };
+                        self.prefetch(far);
                         stack.push(far);
                         current = near;
                         continue;
@@ -304,6 +316,7 @@ impl Bvh {
                         n += 1;
                     }
                     for entry in &hits[..n - 1] {
+                        self.prefetch(*entry);
                         stack.push(*entry);
                     }
                     current = hits[n - 1];
