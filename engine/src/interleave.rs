@@ -1,7 +1,8 @@
 //! Interleaved sampling of the virtual lights (Keller & Heidrich 2001; Dietrich et al.
-//! §4.3). The light set is split into `S` subsets: subset `s` is the stratum
-//! `[s/S, (s+1)/S)` of the luminance CDF, so every subset carries the same share of the
-//! power and a light brighter than `1/S` of it (a sun) belongs to several. Pixels of an
+//! §4.3). A shading point draws `k` lights, light `j` from the stratum `[j/k, (j+1)/k)` of
+//! the luminance CDF; the light set is split into `S` subsets, subset `s` being the
+//! `s`-th of `S` slices of every such stratum, so every subset carries the same share of
+//! the power and a light brighter than `1/(kS)` of it (a sun) belongs to several. Pixels of an
 //! `n × n` tile of the image take different subsets, and the assignment rotates with each
 //! sample of each frame, so over `S` consecutive samples every pixel has drawn from every
 //! subset exactly once: light selection is stratified across frames instead of drawn
@@ -86,12 +87,24 @@ impl LightSubsets {
     }
 
     /// The CDF position of light sample `j` of `k` in subset `subset`, given a uniform
-    /// `u`: the `k` samples are stratified within the subset's stratum.
+    /// `u`: sample `j` keeps to the `j`-th of `k` equal strata, as independent picks do
+    /// ([`stratified_selection`]), and the subset picks the `subset`-th of `S` slices
+    /// within it. A sample's `k` lights so span the whole CDF, and over `S` samples a
+    /// pixel visits every slice of every stratum once. (Packing all `k` into one slice of
+    /// width `1/S` instead made 1–16 spp images noisier than independent picks: 0.0328
+    /// against 0.0289 relMSE on `meadow` at 4 spp.)
     #[inline]
     pub fn selection(&self, subset: u32, j: u32, k: u32, u: f32) -> f32 {
-        let within = (j as f32 + u) / k.max(1) as f32;
-        ((subset as f32 + within) / self.count.max(1) as f32).min(ONE_MINUS_EPSILON)
+        let slice = (subset as f32 + u) / self.count.max(1) as f32;
+        stratified_selection(j, k, slice)
     }
+}
+
+/// The CDF position of light sample `j` of `k` without subsets: stratum `j` of `k`, at
+/// `u` within it.
+#[inline]
+pub fn stratified_selection(j: u32, k: u32, u: f32) -> f32 {
+    ((j as f32 + u) / k.max(1) as f32).min(ONE_MINUS_EPSILON)
 }
 
 /// A permutation of `0..count` evaluated at `step`: bit reversal when `count` is a power
@@ -287,6 +300,15 @@ mod tests {
         let expected: Vec<f32> = (0..8).map(|i| (i as f32 + 0.5) / 8.0).collect();
         assert_eq!(all, expected);
         assert!(subsets.selection(3, 1, 2, 0.999_999_9) < 1.0);
+        // Every subset spreads its k lights over the k strata of the CDF.
+        for s in 0..4 {
+            for j in 0..2 {
+                for u in [0.0, 0.5, 0.999_999_9] {
+                    let at = subsets.selection(s, j, 2, u);
+                    assert!((j as f32 / 2.0..(j + 1) as f32 / 2.0).contains(&at), "{at}");
+                }
+            }
+        }
         assert_eq!(LightInterleave::default().subset_count(), 16);
         assert!(
             !LightInterleave {

@@ -12,7 +12,7 @@ use crate::bvh::simd::{NodeKernel, with_node_kernel};
 use crate::camera::{Camera, CameraView};
 use crate::film::{FrameBuffer, Tile, TileResult};
 use crate::geometry::GeometryLibrary;
-use crate::interleave::LightSubsets;
+use crate::interleave::{LightSubsets, stratified_selection};
 use crate::light::LightSet;
 use crate::math::{ErrorPoint, Ray};
 use crate::sampling::{SampleKey, cosine_hemisphere, orthonormal_basis};
@@ -454,7 +454,7 @@ impl<'a> RenderScene<'a> {
                 let u = key.get(SKY_DIMENSION + k);
                 let u = match shading.light_subset {
                     Some((subsets, subset)) => subsets.selection(subset, k, samples, u),
-                    None => u,
+                    None => stratified_selection(k, samples, u),
                 };
                 let Some(light) = environment.lights.sample(u) else {
                     continue;

@@ -184,6 +184,50 @@ fn interleaved_subsets_are_unbiased_and_beat_independent_selection() {
     });
 }
 
+/// One camera sample with several light samples: under interleaving the sample's lights
+/// must still span the whole luminance CDF (one per stratum, as independent picks
+/// draw them), so a 1-spp image is no noisier than with independent picks. Packing all
+/// of a sample's lights into its subset's narrow slice of the CDF made the single-sample
+/// variance several times larger.
+#[test]
+fn one_interleaved_sample_is_no_noisier_than_independent_picks() {
+    let plane = Plane::new();
+    let environment = Arc::new(EnvironmentLight::new(test_map(30.0), 64));
+    let ray = Ray::new(Vec3A::new(0.3, 2.0, 0.1), -Vec3A::Y);
+    let runs = 4000u32;
+    plane.lit_by(environment, |scene| {
+        for light_samples in [2, 4] {
+            let mut values = [Vec::new(), Vec::new()];
+            for run in 0..runs {
+                let subsets = LightSubsets {
+                    pattern: 4,
+                    count: 16,
+                    offset: run % 16,
+                };
+                let seed = u64::from(run) + 7_000;
+                let interleaved = estimate_with(scene, &ray, 1, seed, |k| SampleShading {
+                    light_subset: Some((subsets, subsets.subset(0, 0, k, 0, 1))),
+                    ..SampleShading::plain(light_samples)
+                });
+                let independent = estimate_with(scene, &ray, 1, seed, |_| {
+                    SampleShading::plain(light_samples)
+                });
+                values[0].push(luminance(interleaved.0));
+                values[1].push(luminance(independent.0));
+            }
+            let [v_int, v_ind] = values.map(|v| {
+                let mean = v.iter().sum::<f32>() / v.len() as f32;
+                v.iter().map(|x| (x - mean).powi(2)).sum::<f32>() / (v.len() - 1) as f32
+            });
+            assert!(
+                v_int < 1.15 * v_ind,
+                "{light_samples} light samples: one interleaved sample's variance {v_int} \
+                 against independent picks' {v_ind}"
+            );
+        }
+    });
+}
+
 #[test]
 fn a_sun_a_million_times_brighter_gives_bounded_samples() {
     let plane = Plane::new();
