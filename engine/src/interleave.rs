@@ -56,9 +56,6 @@ pub struct LightSubsets {
     pub offset: u32,
 }
 
-/// The largest `f32` below 1.
-const ONE_MINUS_EPSILON: f32 = 1.0 - f32::EPSILON / 2.0;
-
 impl LightSubsets {
     /// The subset of sample `sample` (of `samples_per_pixel`) of pixel `(x, y)` in frame
     /// `frame`: the pixel's place in its tile plus the step's position in a permutation of
@@ -101,10 +98,12 @@ impl LightSubsets {
 }
 
 /// The CDF position of light sample `j` of `k` without subsets: stratum `j` of `k`, at
-/// `u` within it.
+/// `u` within it; rounding never carries it into the next stratum.
 #[inline]
 pub fn stratified_selection(j: u32, k: u32, u: f32) -> f32 {
-    ((j as f32 + u) / k.max(1) as f32).min(ONE_MINUS_EPSILON)
+    let k = k.max(1) as f32;
+    let end = ((j as f32 + 1.0) / k).min(1.0);
+    ((j as f32 + u) / k).min(end.next_down())
 }
 
 /// A permutation of `0..count` evaluated at `step`: bit reversal when `count` is a power
