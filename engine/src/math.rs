@@ -1,7 +1,7 @@
 //! Rays, axis-aligned boxes and the floating-point error helpers (pbrt-v4 §6.8) that
 //! robust ray spawning relies on.
 
-use glam::{Affine3A, Vec3, Vec3A};
+use glam::{Affine3A, Vec3A};
 
 /// A ray `origin + t * direction`, valid for `t` in `[0, t_max)`.
 ///
@@ -39,14 +39,6 @@ impl Ray {
     /// The point at parameter `t`.
     pub fn at(&self, t: f32) -> Vec3A {
         self.origin + self.direction * t
-    }
-
-    /// True when origin and direction are finite and the direction is non-zero.
-    pub fn is_valid(&self) -> bool {
-        self.origin.is_finite()
-            && self.direction.is_finite()
-            && self.direction != Vec3A::ZERO
-            && !self.t_max.is_nan()
     }
 
     /// The same ray expressed in the space of `inverse` (world → object).
@@ -245,26 +237,10 @@ impl ErrorPoint {
     }
 }
 
-/// Returns `v` made finite and non-negative: NaN and negative values become 0,
-/// +inf becomes `f32::MAX`.
-#[inline]
-pub fn sanitize_non_negative(v: f32) -> f32 {
-    if v.is_nan() || v <= 0.0 {
-        0.0
-    } else {
-        v.min(f32::MAX)
-    }
-}
-
-/// Converts a `Vec3` into the SIMD-aligned `Vec3A` used in kernels.
-#[inline]
-pub fn a(v: Vec3) -> Vec3A {
-    Vec3A::from(v)
-}
-
 #[cfg(test)]
 mod tests {
     use super::*;
+    use glam::Vec3;
 
     #[test]
     fn next_float_steps_one_ulp() {

@@ -171,27 +171,6 @@ impl TriangleMesh {
         Aabb::from_points(self.positions.iter().map(|&p| p.into()))
     }
 
-    /// Appends `other`, shifting its indices.
-    pub fn append(&mut self, other: &TriangleMesh) {
-        let base = self.positions.len() as u32;
-        let had_normals = !self.normals.is_empty() || self.positions.is_empty();
-        let had_uvs = !self.uvs.is_empty() || self.positions.is_empty();
-        self.positions.extend_from_slice(&other.positions);
-        if had_normals && !other.normals.is_empty() {
-            self.normals.extend_from_slice(&other.normals);
-        } else {
-            self.normals.clear();
-        }
-        if had_uvs && !other.uvs.is_empty() {
-            self.uvs.extend_from_slice(&other.uvs);
-        } else {
-            self.uvs.clear();
-        }
-        self.indices
-            .extend(other.indices.iter().map(|t| t.map(|i| i + base)));
-        self.shaders.extend_from_slice(&other.shaders);
-    }
-
     /// Heap bytes held.
     pub fn memory_bytes(&self) -> usize {
         self.positions.capacity() * 12
