@@ -360,7 +360,7 @@ proptest! {
     #![proptest_config(ProptestConfig { cases: 64, .. ProptestConfig::default() })]
 
     #[test]
-    fn proptest_blas_closest_equals_brute_force(seed in any::<u64>(), n in 1usize..400, size in 0.01f32..2.0, preset in 0usize..3) {
+    fn proptest_blas_closest_equals_brute_force(seed in any::<u64>(), n in 1usize..400, size in 0.01f32..2.0, preset in 0usize..BuildParams::PRESETS.len()) {
         let mut rng = TestRng::new(seed);
         let mesh = random_mesh(&mut rng, n, 2.0, size);
         let rays: Vec<Ray> = (0..200).map(|_| random_ray(&mut rng, 3.0)).collect();

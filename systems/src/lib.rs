@@ -106,7 +106,7 @@ impl BuildSettings {
 impl Default for BuildSettings {
     fn default() -> Self {
         Self {
-            top_level: BuildParams::default(),
+            top_level: BuildParams::TOP_LEVEL,
             refit_limit: Self::REFIT_LIMIT,
         }
     }
