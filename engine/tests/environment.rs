@@ -133,6 +133,46 @@ fn a_lambertian_plane_converges_to_the_sum_over_the_virtual_lights() {
     });
 }
 
+/// Per run `r` (seed `seed + r`, subset rotation `r mod 16`), the luminance of the mean
+/// of `frames` one-sample estimates along `ray`: with interleaved subsets, and with
+/// independent picks.
+fn interleaved_and_independent(
+    scene: &RenderScene,
+    ray: &Ray,
+    runs: u32,
+    frames: u32,
+    light_samples: u32,
+    seed: u64,
+) -> [Vec<f32>; 2] {
+    let mut values = [Vec::new(), Vec::new()];
+    for run in 0..runs {
+        let subsets = LightSubsets {
+            pattern: 4,
+            count: 16,
+            offset: run % 16,
+        };
+        let seed = u64::from(run) + seed;
+        let interleaved = estimate_with(scene, ray, frames, seed, |k| SampleShading {
+            light_subset: Some((subsets, subsets.subset(0, 0, k, 0, 1))),
+            ..SampleShading::plain(light_samples)
+        });
+        let independent = estimate_with(scene, ray, frames, seed, |_| {
+            SampleShading::plain(light_samples)
+        });
+        values[0].push(luminance(interleaved.0));
+        values[1].push(luminance(independent.0));
+    }
+    values
+}
+
+/// Mean and sample variance.
+fn mean_and_variance(values: &[f32]) -> (f32, f32) {
+    let mean = values.iter().sum::<f32>() / values.len() as f32;
+    let variance =
+        values.iter().map(|x| (x - mean).powi(2)).sum::<f32>() / (values.len() - 1) as f32;
+    (mean, variance)
+}
+
 /// Interleaved light subsets: over the render's random rotation the estimator keeps the
 /// discrete sum as its mean, and stratifying light selection across frames lowers the
 /// variance of a pixel's progressive mean against independent selection.
@@ -145,30 +185,9 @@ fn interleaved_subsets_are_unbiased_and_beat_independent_selection() {
     let (runs, frames) = (300u32, 32u32);
     plane.lit_by(environment, |scene| {
         for light_samples in [1, 2] {
-            let mut means = [Vec::new(), Vec::new()];
-            for run in 0..runs {
-                let subsets = LightSubsets {
-                    pattern: 4,
-                    count: 16,
-                    offset: run % 16,
-                };
-                let seed = u64::from(run) + 100;
-                let interleaved = estimate_with(scene, &ray, frames, seed, |k| SampleShading {
-                    light_subset: Some((subsets, subsets.subset(0, 0, k, 0, 1))),
-                    ..SampleShading::plain(light_samples)
-                });
-                let independent = estimate_with(scene, &ray, frames, seed, |_| {
-                    SampleShading::plain(light_samples)
-                });
-                means[0].push(luminance(interleaved.0));
-                means[1].push(luminance(independent.0));
-            }
+            let means = interleaved_and_independent(scene, &ray, runs, frames, light_samples, 100);
             let truth = luminance(expected);
-            let [(m_int, v_int), (m_ind, v_ind)] = means.map(|m| {
-                let mean = m.iter().sum::<f32>() / m.len() as f32;
-                let var = m.iter().map(|x| (x - mean).powi(2)).sum::<f32>() / (m.len() - 1) as f32;
-                (mean, var)
-            });
+            let [(m_int, v_int), (m_ind, v_ind)] = means.map(|m| mean_and_variance(&m));
             for (mean, var) in [(m_int, v_int), (m_ind, v_ind)] {
                 let standard_error = (var / runs as f32).sqrt();
                 assert!(
@@ -197,28 +216,8 @@ fn one_interleaved_sample_is_no_noisier_than_independent_picks() {
     let runs = 4000u32;
     plane.lit_by(environment, |scene| {
         for light_samples in [2, 4] {
-            let mut values = [Vec::new(), Vec::new()];
-            for run in 0..runs {
-                let subsets = LightSubsets {
-                    pattern: 4,
-                    count: 16,
-                    offset: run % 16,
-                };
-                let seed = u64::from(run) + 7_000;
-                let interleaved = estimate_with(scene, &ray, 1, seed, |k| SampleShading {
-                    light_subset: Some((subsets, subsets.subset(0, 0, k, 0, 1))),
-                    ..SampleShading::plain(light_samples)
-                });
-                let independent = estimate_with(scene, &ray, 1, seed, |_| {
-                    SampleShading::plain(light_samples)
-                });
-                values[0].push(luminance(interleaved.0));
-                values[1].push(luminance(independent.0));
-            }
-            let [v_int, v_ind] = values.map(|v| {
-                let mean = v.iter().sum::<f32>() / v.len() as f32;
-                v.iter().map(|x| (x - mean).powi(2)).sum::<f32>() / (v.len() - 1) as f32
-            });
+            let values = interleaved_and_independent(scene, &ray, runs, 1, light_samples, 7_000);
+            let [(_, v_int), (_, v_ind)] = values.map(|v| mean_and_variance(&v));
             assert!(
                 v_int < 1.15 * v_ind,
                 "{light_samples} light samples: one interleaved sample's variance {v_int} \
