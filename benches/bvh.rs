@@ -71,7 +71,7 @@ fn tlas(c: &mut Criterion) {
         group.throughput(Throughput::Elements(count as u64));
         group.bench_with_input(BenchmarkId::new("build", count), &descs, |b, descs| {
             b.iter(|| {
-                pool.install(|| TopLevel::build(&meadow.library, descs, BuildParams::BALANCED))
+                pool.install(|| TopLevel::build(&meadow.library, descs, BuildParams::TOP_LEVEL))
             })
         });
         // A refit to the same instances each tilted by 0.1 rad about its base.
@@ -86,7 +86,7 @@ fn tlas(c: &mut Criterion) {
             })
             .collect();
         let built =
-            pool.install(|| TopLevel::build(&meadow.library, &descs, BuildParams::BALANCED));
+            pool.install(|| TopLevel::build(&meadow.library, &descs, BuildParams::TOP_LEVEL));
         group.bench_with_input(BenchmarkId::new("refit", count), &tilted, |b, tilted| {
             let mut top_level = built.clone();
             b.iter(|| pool.install(|| top_level.refit(&meadow.library, tilted).unwrap()))

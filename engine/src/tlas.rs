@@ -160,11 +160,8 @@ fn record(
 
 /// Summed surface area of instance boxes (at least the smallest positive f64, so a ratio
 /// of costs stays finite).
-fn primitive_area<'a>(boxes: impl Iterator<Item = &'a Aabb>) -> f64 {
-    boxes
-        .map(|b| b.surface_area() as f64)
-        .sum::<f64>()
-        .max(f64::MIN_POSITIVE)
+fn primitive_area(slot_bounds: &[Aabb]) -> f64 {
+    crate::bvh::chunked_sum(slot_bounds, |b| b.surface_area() as f64).max(f64::MIN_POSITIVE)
 }
 
 /// The test [`Bvh::build`] applies to keep a box: instances of empty meshes, or whose
@@ -185,28 +182,25 @@ impl TopLevel {
         // Boxes first, with a cheap usability check; records (with their inverses) only
         // for what enters the tree, written once in slot order. A per-instance
         // intermediate holding both cost more (allocation, page faults, copies) than the
-        // BVH build itself at 365 k instances.
-        let checked: Vec<Result<Aabb, Unusable>> = instances
+        // BVH build itself at 365 k instances. Unusable instances get an empty box, and
+        // only those are checked again for the reason.
+        let bounds: Vec<Aabb> = instances
             .par_iter()
-            .map(|desc| world_bounds(library, desc))
+            .map(|desc| world_bounds(library, desc).unwrap_or(Aabb::EMPTY))
             .collect();
         let mut skipped = SkippedInstances::default();
-        let bounds: Vec<Aabb> = checked
-            .iter()
-            .enumerate()
-            .map(|(i, c)| match c {
-                Ok(bounds) => *bounds,
-                Err(reason) => {
-                    match reason {
-                        Unusable::Singular => skipped.singular += 1,
-                        Unusable::UnknownGeometry => skipped.unknown_geometry += 1,
-                    }
-                    skipped.ids.push(i as u32);
-                    Aabb::EMPTY
+        for (i, desc) in instances.iter().enumerate() {
+            if is_hittable(&bounds[i]) {
+                continue;
+            }
+            if let Err(reason) = usable(library, desc) {
+                match reason {
+                    Unusable::Singular => skipped.singular += 1,
+                    Unusable::UnknownGeometry => skipped.unknown_geometry += 1,
                 }
-            })
-            .collect();
-        drop(checked);
+                skipped.ids.push(i as u32);
+            }
+        }
         let bvh = Bvh::build(&bounds, params);
         let records = bvh
             .prim_indices
@@ -223,8 +217,13 @@ impl TopLevel {
         let outside = (0..instances.len() as u32)
             .filter(|&i| !in_tree[i as usize])
             .collect();
-        let built_sah_cost =
-            bvh.sah_cost() / primitive_area(bvh.prim_indices.iter().map(|&i| &bounds[i as usize]));
+        let built_sah_cost = bvh.sah_cost()
+            / primitive_area(
+                &bvh.prim_indices
+                    .par_iter()
+                    .map(|&i| bounds[i as usize])
+                    .collect::<Vec<_>>(),
+            );
         TopLevel {
             instances: records,
             bvh,
@@ -299,7 +298,7 @@ impl TopLevel {
             let id = slot.id;
             *slot = record(library, id, &instances[id as usize]).expect("checked above");
         });
-        self.current_sah_cost = self.bvh.sah_cost() / primitive_area(slot_bounds.iter());
+        self.current_sah_cost = self.bvh.sah_cost() / primitive_area(&slot_bounds);
         self.refit_scratch = slot_bounds;
         Ok(self.degradation())
     }

@@ -200,6 +200,31 @@ fn parallel_build_equals_sequential_build() {
     assert_eq!(parallel.nodes.len(), sequential.nodes.len());
 }
 
+/// The tree (binary nodes, wide nodes, slot order) is the same bits on any pool size:
+/// large enough for parallel binning at the root, parallel subtrees and the parallel
+/// collapse, for every preset.
+#[test]
+fn build_is_identical_on_any_thread_count() {
+    let mut rng = TestRng::new(11);
+    let mesh = random_mesh(&mut rng, 150_000, 30.0, 0.3);
+    let bounds = bounds_of(&mesh);
+    let build_on = |threads: usize, params: BuildParams| {
+        rayon::ThreadPoolBuilder::new()
+            .num_threads(threads)
+            .build()
+            .unwrap()
+            .install(|| Bvh::build(&bounds, params))
+    };
+    for (name, params) in BuildParams::PRESETS {
+        let one = build_on(1, params);
+        let three = build_on(3, params);
+        one.validate(&bounds).unwrap();
+        assert_eq!(one.prim_indices, three.prim_indices, "{name}: slot order");
+        assert!(one.nodes == three.nodes, "{name}: binary nodes differ");
+        assert!(one.wide == three.wide, "{name}: wide nodes differ");
+    }
+}
+
 #[test]
 fn validate_after_every_preset_on_degenerate_input() {
     let mut rng = TestRng::new(3);

@@ -6,7 +6,7 @@
 
 use super::{Bvh, BvhNode, MAX_DEPTH};
 use crate::math::Aabb;
-use glam::Vec3A;
+use glam::{Vec3A, Vec4};
 use rayon::prelude::*;
 
 /// Settings of the builder; see the presets.
@@ -86,23 +86,93 @@ const FORCED_MEDIAN_DEPTH: usize = MAX_DEPTH - 33;
 /// Nodes at least this large bin their primitives in parallel.
 const PARALLEL_BINNING: usize = 1 << 16;
 
+/// A primitive's box with its index in the `w` lane of the lower corner: 32 bytes, so
+/// binning and partitioning move half the memory a separate centroid and index cost.
 #[derive(Clone, Copy)]
 struct PrimRef {
-    bounds: Aabb,
-    centroid: Vec3A,
-    index: u32,
+    lo: Vec4,
+    hi: Vec4,
+}
+
+impl PrimRef {
+    fn new(bounds: &Aabb, index: u32) -> Self {
+        Self {
+            lo: bounds.min.extend(f32::from_bits(index)),
+            hi: bounds.max.extend(0.0),
+        }
+    }
+
+    fn index(&self) -> u32 {
+        self.lo.w.to_bits()
+    }
+
+    /// The lower corner with the index bits blended out of `w`: those bits are a
+    /// subnormal float, and arithmetic on one (even in an unused lane) takes a microcode
+    /// assist of ~100 cycles — it made the SAH sweep a fifth of the build.
+    #[inline]
+    fn min(&self) -> Vec3A {
+        Vec3A::from_vec4(Vec4::select(
+            glam::BVec4A::new(true, true, true, false),
+            self.lo,
+            Vec4::ZERO,
+        ))
+    }
+
+    #[inline]
+    fn bounds(&self) -> Aabb {
+        Aabb::new(self.min(), Vec3A::from_vec4(self.hi))
+    }
+
+    /// The box centre (halves added, so boxes near the largest float do not overflow).
+    #[inline]
+    fn centroid(&self) -> Vec3A {
+        self.min() * 0.5 + Vec3A::from_vec4(self.hi) * 0.5
+    }
 }
 
 #[derive(Clone, Copy)]
 struct Bin {
-    bounds: Aabb,
+    extent: Extent,
     count: u32,
 }
 
 const EMPTY_BIN: Bin = Bin {
-    bounds: Aabb::EMPTY,
+    extent: Extent::EMPTY,
     count: 0,
 };
+
+/// A node's primitives: their box and the box of their centroids.
+#[derive(Clone, Copy)]
+struct Extent {
+    bounds: Aabb,
+    centroids: Aabb,
+}
+
+impl Extent {
+    const EMPTY: Extent = Extent {
+        bounds: Aabb::EMPTY,
+        centroids: Aabb::EMPTY,
+    };
+
+    fn of(refs: &[PrimRef]) -> Extent {
+        refs.iter().fold(Extent::EMPTY, |e, r| e.with(r))
+    }
+
+    #[inline]
+    fn with(self, r: &PrimRef) -> Extent {
+        Extent {
+            bounds: self.bounds.union(r.bounds()),
+            centroids: self.centroids.grow(r.centroid()),
+        }
+    }
+
+    fn union(self, other: Extent) -> Extent {
+        Extent {
+            bounds: self.bounds.union(other.bounds),
+            centroids: self.centroids.union(other.centroids),
+        }
+    }
+}
 
 enum Split {
     Leaf,
@@ -113,8 +183,8 @@ enum Split {
         bins: usize,
         scale: Vec3A,
         min: Vec3A,
-        left: Aabb,
-        right: Aabb,
+        left: Extent,
+        right: Extent,
     },
 }
 
@@ -123,7 +193,7 @@ enum Split {
 struct Scratch {
     bins: Vec<Bin>,
     right_cost: Vec<f32>,
-    right_bounds: Vec<Aabb>,
+    right_extent: Vec<Extent>,
 }
 
 impl Scratch {
@@ -131,7 +201,7 @@ impl Scratch {
         Self {
             bins: vec![EMPTY_BIN; 3 * MAX_BINS],
             right_cost: vec![0.0; MAX_BINS],
-            right_bounds: vec![Aabb::EMPTY; MAX_BINS],
+            right_extent: vec![Extent::EMPTY; MAX_BINS],
         }
     }
 }
@@ -140,10 +210,45 @@ struct Builder {
     params: BuildParams,
 }
 
-/// A subtree under construction with its scratch memory.
+/// A subtree built by one task, with its scratch memory: its nodes (root first, child
+/// indices local to `nodes`) and the subtrees its parallel splits handed to other tasks,
+/// each with the local index of the placeholder its root replaces.
 struct Subtree {
     nodes: Vec<BvhNode>,
     scratch: Scratch,
+    attached: Vec<(usize, Subtree)>,
+}
+
+impl Subtree {
+    /// Nodes in this subtree and all attached ones (placeholders not counted).
+    fn node_count(&self) -> usize {
+        self.nodes.len()
+            + self
+                .attached
+                .iter()
+                .map(|(_, s)| s.node_count() - 1)
+                .sum::<usize>()
+    }
+
+    /// Appends the nodes to `out` in one copy each, the root at `root_at` (already in
+    /// `out`) and the rest after the current end, with child indices made absolute.
+    fn flatten_into(self, root_at: usize, out: &mut Vec<BvhNode>) {
+        let base = out.len();
+        let placed = |node: &BvhNode| {
+            if node.is_leaf() {
+                *node
+            } else {
+                node.with_first((base + node.first() as usize - 1) as u32)
+            }
+        };
+        out[root_at] = placed(&self.nodes[0]);
+        for node in &self.nodes[1..] {
+            out.push(placed(node));
+        }
+        for (slot, subtree) in self.attached {
+            subtree.flatten_into(base + slot - 1, out);
+        }
+    }
 }
 
 impl Bvh {
@@ -155,26 +260,36 @@ impl Bvh {
             max_leaf_size: params.max_leaf_size.max(1),
             ..params
         };
-        let mut refs: Vec<PrimRef> = prim_bounds
-            .par_iter()
-            .enumerate()
-            .filter(|(_, b)| !b.is_empty() && b.min.is_finite() && b.max.is_finite())
-            .map(|(i, b)| PrimRef {
-                bounds: *b,
-                centroid: b.center(),
-                index: i as u32,
-            })
-            .collect();
+        let usable = |b: &Aabb| !b.is_empty() && b.min.is_finite() && b.max.is_finite();
+        // A filtered parallel collect goes through a list of pieces and a second copy:
+        // take the direct, indexed one whenever every box is usable.
+        let mut refs: Vec<PrimRef> = if prim_bounds.par_iter().all(usable) {
+            prim_bounds
+                .par_iter()
+                .enumerate()
+                .map(|(i, b)| PrimRef::new(b, i as u32))
+                .collect()
+        } else {
+            prim_bounds
+                .par_iter()
+                .enumerate()
+                .filter(|(_, b)| usable(b))
+                .map(|(i, b)| PrimRef::new(b, i as u32))
+                .collect()
+        };
         if refs.is_empty() {
             return Bvh::default();
         }
-        let bounds = refs
-            .par_iter()
-            .map(|r| r.bounds)
-            .reduce(|| Aabb::EMPTY, Aabb::union);
+        let extent = refs
+            .par_chunks(16 * 1024)
+            .map(Extent::of)
+            .reduce(|| Extent::EMPTY, Extent::union);
         let builder = Builder { params };
-        let nodes = builder.build_subtree(&mut refs, 0, bounds, 0);
-        let prim_indices = refs.iter().map(|r| r.index).collect();
+        let tree = builder.build_subtree(&mut refs, 0, extent, 0);
+        let mut nodes = Vec::with_capacity(tree.node_count());
+        nodes.push(tree.nodes[0]);
+        tree.flatten_into(0, &mut nodes);
+        let prim_indices = refs.iter().map(PrimRef::index).collect();
         let wide = super::wide::collapse(&nodes);
         Bvh {
             nodes,
@@ -189,40 +304,46 @@ impl Builder {
         &self,
         refs: &mut [PrimRef],
         prim_offset: u32,
-        bounds: Aabb,
+        extent: Extent,
         depth: usize,
-    ) -> Vec<BvhNode> {
-        let mut nodes = Vec::with_capacity(
-            (2 * refs.len()).saturating_sub(1) / self.params.max_leaf_size.max(1) + 1,
-        );
-        nodes.push(BvhNode::leaf(bounds, prim_offset, 0));
+    ) -> Subtree {
+        // At most 2n − 1 nodes; a subtree that splits in parallel keeps only a few.
+        let n = refs.len();
+        let capacity = if n >= self.params.parallel_threshold {
+            3
+        } else {
+            2 * n
+        };
+        let mut nodes = Vec::with_capacity(capacity);
+        nodes.push(BvhNode::leaf(extent.bounds, prim_offset, 0));
         let mut work = Subtree {
             nodes,
             scratch: Scratch::new(),
+            attached: Vec::new(),
         };
-        self.build_node(refs, prim_offset, bounds, depth, &mut work, 0);
-        work.nodes
+        self.build_node(refs, prim_offset, extent, depth, &mut work, 0);
+        work
     }
 
     fn build_node(
         &self,
         refs: &mut [PrimRef],
         prim_offset: u32,
-        bounds: Aabb,
+        extent: Extent,
         depth: usize,
         work: &mut Subtree,
         at: usize,
     ) {
         let n = refs.len();
-        let (mid, left_bounds, right_bounds) =
-            match self.find_split(refs, bounds, depth, &mut work.scratch) {
+        let (mid, left_extent, right_extent) =
+            match self.find_split(refs, &extent, depth, &mut work.scratch) {
                 Split::Leaf => {
-                    work.nodes[at] = BvhNode::leaf(bounds, prim_offset, n as u32);
+                    work.nodes[at] = BvhNode::leaf(extent.bounds, prim_offset, n as u32);
                     return;
                 }
                 Split::Median => {
                     let mid = n / 2;
-                    (mid, union_of(&refs[..mid]), union_of(&refs[mid..]))
+                    (mid, Extent::of(&refs[..mid]), Extent::of(&refs[mid..]))
                 }
                 Split::Binned {
                     axis,
@@ -233,50 +354,42 @@ impl Builder {
                     left,
                     right,
                 } => {
-                    let mid = partition(refs, |r| {
-                        bin_index(r.centroid, axis, scale, min, bins) < bin
-                    });
+                    let mid = partition(refs, |c| bin_index(c, axis, scale, min, bins) < bin);
                     (mid, left, right)
                 }
             };
         let (left, right) = refs.split_at_mut(mid);
         let right_offset = prim_offset + mid as u32;
+        let bounds = extent.bounds;
         if n >= self.params.parallel_threshold {
             let (ln, rn) = rayon::join(
-                || self.build_subtree(left, prim_offset, left_bounds, depth + 1),
-                || self.build_subtree(right, right_offset, right_bounds, depth + 1),
+                || self.build_subtree(left, prim_offset, left_extent, depth + 1),
+                || self.build_subtree(right, right_offset, right_extent, depth + 1),
             );
-            let nodes = &mut work.nodes;
-            let pair = nodes.len();
-            nodes[at] = BvhNode::interior(bounds, pair as u32);
-            let base_left = pair + 2;
-            let base_right = base_left + ln.len() - 1;
-            let remap = |node: &BvhNode, base: usize| {
-                if node.is_leaf() {
-                    *node
-                } else {
-                    node.with_first((base + node.first() as usize - 1) as u32)
-                }
-            };
-            nodes.push(remap(&ln[0], base_left));
-            nodes.push(remap(&rn[0], base_right));
-            nodes.extend(ln[1..].iter().map(|x| remap(x, base_left)));
-            nodes.extend(rn[1..].iter().map(|x| remap(x, base_right)));
+            let pair = work.nodes.len();
+            work.nodes[at] = BvhNode::interior(bounds, pair as u32);
+            work.nodes
+                .push(BvhNode::leaf(left_extent.bounds, prim_offset, 0));
+            work.nodes
+                .push(BvhNode::leaf(right_extent.bounds, right_offset, 0));
+            work.attached.push((pair, ln));
+            work.attached.push((pair + 1, rn));
         } else {
             let pair = work.nodes.len();
             work.nodes[at] = BvhNode::interior(bounds, pair as u32);
-            work.nodes.push(BvhNode::leaf(left_bounds, prim_offset, 0));
             work.nodes
-                .push(BvhNode::leaf(right_bounds, right_offset, 0));
-            self.build_node(left, prim_offset, left_bounds, depth + 1, work, pair);
-            self.build_node(right, right_offset, right_bounds, depth + 1, work, pair + 1);
+                .push(BvhNode::leaf(left_extent.bounds, prim_offset, 0));
+            work.nodes
+                .push(BvhNode::leaf(right_extent.bounds, right_offset, 0));
+            self.build_node(left, prim_offset, left_extent, depth + 1, work, pair);
+            self.build_node(right, right_offset, right_extent, depth + 1, work, pair + 1);
         }
     }
 
     fn find_split(
         &self,
         refs: &[PrimRef],
-        bounds: Aabb,
+        extent: &Extent,
         depth: usize,
         scratch: &mut Scratch,
     ) -> Split {
@@ -292,10 +405,10 @@ impl Builder {
                 Split::Median
             };
         }
-        let cb = centroid_bounds(refs);
+        let cb = &extent.centroids;
         // More bins than primitives cannot find better splits.
         let bins_per_axis = self.params.bins.min(n.max(2));
-        let (scale, min) = bin_transform(&cb, bins_per_axis);
+        let (scale, min) = bin_transform(cb, bins_per_axis);
         let scale = if self.params.longest_axis_only {
             let axis = cb.largest_axis();
             Vec3A::select(
@@ -322,35 +435,35 @@ impl Builder {
             fill_bins(refs, scale, min, bins_per_axis, all_bins);
         }
 
-        let mut best: Option<(f32, usize, usize, Aabb, Aabb)> = None;
+        let mut best: Option<(f32, usize, usize, Extent, Extent)> = None;
         for axis in 0..3 {
             if scale[axis] == 0.0 {
                 continue;
             }
             let bins = &scratch.bins[axis * bins_per_axis..(axis + 1) * bins_per_axis];
             let right_cost = &mut scratch.right_cost;
-            let right_bounds = &mut scratch.right_bounds;
-            let (mut acc, mut count) = (Aabb::EMPTY, 0u32);
+            let right_extent = &mut scratch.right_extent;
+            let (mut acc, mut count) = (Extent::EMPTY, 0u32);
             for i in (1..bins_per_axis).rev() {
-                acc = acc.union(bins[i].bounds);
+                acc = acc.union(bins[i].extent);
                 count += bins[i].count;
-                right_bounds[i] = acc;
+                right_extent[i] = acc;
                 right_cost[i] = if count == 0 {
                     f32::INFINITY
                 } else {
-                    acc.surface_area() * count as f32
+                    acc.bounds.surface_area() * count as f32
                 };
             }
-            let (mut acc, mut count) = (Aabb::EMPTY, 0u32);
+            let (mut acc, mut count) = (Extent::EMPTY, 0u32);
             for i in 1..bins_per_axis {
-                acc = acc.union(bins[i - 1].bounds);
+                acc = acc.union(bins[i - 1].extent);
                 count += bins[i - 1].count;
                 if count == 0 || !right_cost[i].is_finite() {
                     continue;
                 }
-                let cost = acc.surface_area() * count as f32 + right_cost[i];
-                if best.is_none_or(|b| cost < b.0) {
-                    best = Some((cost, axis, i, acc, right_bounds[i]));
+                let cost = acc.bounds.surface_area() * count as f32 + right_cost[i];
+                if best.as_ref().is_none_or(|b| cost < b.0) {
+                    best = Some((cost, axis, i, acc, right_extent[i]));
                 }
             }
         }
@@ -361,7 +474,7 @@ impl Builder {
                 Split::Median
             };
         };
-        let area = bounds.surface_area();
+        let area = extent.bounds.surface_area();
         let split_cost = self.params.traversal_cost * area + cost;
         let leaf_cost = n as f32 * area;
         if n <= max_leaf && leaf_cost <= split_cost {
@@ -380,22 +493,8 @@ impl Builder {
     }
 }
 
-fn union_of(refs: &[PrimRef]) -> Aabb {
-    refs.iter().fold(Aabb::EMPTY, |b, r| b.union(r.bounds))
-}
-
-fn centroid_bounds(refs: &[PrimRef]) -> Aabb {
-    if refs.len() >= PARALLEL_BINNING {
-        refs.par_iter()
-            .map(|r| Aabb::new(r.centroid, r.centroid))
-            .reduce(|| Aabb::EMPTY, Aabb::union)
-    } else {
-        refs.iter().fold(Aabb::EMPTY, |b, r| b.grow(r.centroid))
-    }
-}
-
-/// Per-axis scale and offset mapping a centroid to a bin; scale 0 marks an axis with no
-/// extent (nothing to split).
+/// Per-axis scale and offset mapping a centroid to a bin; scale 0 marks an
+/// axis with no extent (nothing to split).
 fn bin_transform(cb: &Aabb, bins: usize) -> (Vec3A, Vec3A) {
     let extent = cb.extent();
     let scale = Vec3A::select(
@@ -410,7 +509,14 @@ fn bin_transform(cb: &Aabb, bins: usize) -> (Vec3A, Vec3A) {
 
 #[inline]
 fn bin_index(centroid: Vec3A, axis: usize, scale: Vec3A, min: Vec3A, bins: usize) -> usize {
-    bin_indices(centroid, scale, min, bins)[axis]
+    // The lane computation of `bin_indices` in scalar arithmetic: the same IEEE
+    // operations in the same order, so binning and partitioning agree bit for bit.
+    const MAGIC: f32 = 8_388_608.0; // 2²³
+    let k = ((centroid[axis] - min[axis]) * scale[axis] - 0.5)
+        .max(0.0)
+        .min(bins as f32 - 1.0)
+        + MAGIC;
+    (k.to_bits() & 0x7f_ffff) as usize
 }
 
 /// The bin of a centroid on all three axes at once, without float-to-integer casts
@@ -432,11 +538,11 @@ fn fill_bins(refs: &[PrimRef], scale: Vec3A, min: Vec3A, bins: usize, out: &mut 
     // Axes with scale 0 cannot be split: skip their bins.
     let active = [scale.x != 0.0, scale.y != 0.0, scale.z != 0.0];
     for r in refs {
-        let k = bin_indices(r.centroid, scale, min, bins);
+        let k = bin_indices(r.centroid(), scale, min, bins);
         for axis in 0..3 {
             if active[axis] {
                 let b = &mut out[axis * bins + k[axis]];
-                b.bounds = b.bounds.union(r.bounds);
+                b.extent = b.extent.with(r);
                 b.count += 1;
             }
         }
@@ -445,23 +551,24 @@ fn fill_bins(refs: &[PrimRef], scale: Vec3A, min: Vec3A, bins: usize, out: &mut 
 
 fn merge_bins(mut a: Vec<Bin>, b: Vec<Bin>) -> Vec<Bin> {
     for (ba, bb) in a.iter_mut().zip(&b) {
-        ba.bounds = ba.bounds.union(bb.bounds);
+        ba.extent = ba.extent.union(bb.extent);
         ba.count += bb.count;
     }
     a
 }
 
-/// Moves the elements for which `goes_left` holds to the front; returns their count.
-fn partition(refs: &mut [PrimRef], goes_left: impl Fn(&PrimRef) -> bool) -> usize {
-    let mut i = 0;
-    let mut j = refs.len();
-    while i < j {
-        if goes_left(&refs[i]) {
-            i += 1;
-        } else {
-            j -= 1;
-            refs.swap(i, j);
-        }
+/// Moves the primitives whose centroid `goes_left` to the front; returns their
+/// count. Branch-free (Lomuto with unconditional swaps): the side of a primitive is a
+/// coin flip the branch predictor cannot learn, and the mispredicted swaps of a
+/// two-cursor partition were a third of the whole build.
+fn partition(refs: &mut [PrimRef], goes_left: impl Fn(Vec3A) -> bool) -> usize {
+    let mut k = 0;
+    for i in 0..refs.len() {
+        let r = refs[i];
+        let is_left = goes_left(r.centroid());
+        refs[i] = refs[k];
+        refs[k] = r;
+        k += is_left as usize;
     }
-    i
+    k
 }

@@ -21,8 +21,8 @@ pub use wide::{WIDTH, WideNode};
 /// Traversal stack capacity; [`build`](Bvh::build) bounds the depth below it.
 pub const MAX_DEPTH: usize = 96;
 
-/// A binary BVH: nodes in depth-first order (root at 0) and the primitive order its
-/// leaves refer to.
+/// A binary BVH: nodes with every parent before its children (root at 0) and the
+/// primitive order its leaves refer to.
 #[derive(Clone, Debug, Default)]
 pub struct Bvh {
     /// Binary nodes as built; empty when the BVH holds no primitive.
@@ -51,4 +51,15 @@ impl Bvh {
     pub fn bounds(&self) -> crate::math::Aabb {
         self.nodes.first().map(|n| n.bounds()).unwrap_or_default()
     }
+}
+
+/// Sum of `term` over `items` on the rayon pool, in fixed chunks added in order, so the
+/// floating-point result does not depend on the thread count.
+pub(crate) fn chunked_sum<T: Sync>(items: &[T], term: impl Fn(&T) -> f64 + Sync) -> f64 {
+    use rayon::prelude::*;
+    let partial: Vec<f64> = items
+        .par_chunks(16 * 1024)
+        .map(|chunk| chunk.iter().map(&term).sum::<f64>())
+        .collect();
+    partial.iter().sum()
 }

@@ -97,12 +97,9 @@ impl Bvh {
     /// degradation. (Normalising by the root's area would hide a primitive moved far
     /// away: the grown root makes every node look relatively smaller.) 0 when empty.
     pub fn sah_cost(&self) -> f64 {
-        self.nodes
-            .iter()
-            .map(|node| {
-                let weight = if node.is_leaf() { node.count() } else { 1 };
-                node.bounds().surface_area() as f64 * weight as f64
-            })
-            .sum()
+        super::chunked_sum(&self.nodes, |node| {
+            let weight = if node.is_leaf() { node.count() } else { 1 };
+            node.bounds().surface_area() as f64 * weight as f64
+        })
     }
 }

@@ -6,6 +6,7 @@
 use super::BvhNode;
 use crate::math::Aabb;
 use glam::Vec3A;
+use rayon::prelude::*;
 
 /// Children per wide node.
 pub const WIDTH: usize = 8;
@@ -94,42 +95,92 @@ impl WideNode {
 
 /// Collapses a binary BVH into a wide one: each wide node takes the children of a
 /// binary node and keeps opening its largest interior child until it has [`WIDTH`].
+///
+/// The top [`PARALLEL_LEVELS`] wide levels are made first; the subtrees below them are
+/// collapsed on the rayon pool and appended in a fixed order, so the result does not
+/// depend on the thread count, and its vector is allocated at its exact size.
 pub fn collapse(binary: &[BvhNode]) -> Vec<WideNode> {
-    // Measured: one wide node per 6.5–6.7 binary nodes (a full collapse would give one
-    // per 2·(WIDTH − 1) = 14; leaves stop it early). The slack goes at the end.
-    let mut wide = Vec::with_capacity(binary.len() / 6 + 1);
-    if let Some(root) = binary.first() {
-        if root.is_leaf() {
-            let mut node = WideNode::empty();
-            node.set_box(0, root.bounds());
-            node.children[0] = root.first();
-            node.counts[0] = root.count();
-            wide.push(node);
-        } else {
-            collapse_node(binary, 0, &mut wide);
-        }
+    let Some(root) = binary.first() else {
+        return Vec::new();
+    };
+    if root.is_leaf() {
+        let mut node = WideNode::empty();
+        node.set_box(0, root.bounds());
+        node.children[0] = root.first();
+        node.counts[0] = root.count();
+        return vec![node];
     }
-    wide.shrink_to_fit();
+    let mut top = Vec::new();
+    let mut frontier = Vec::new();
+    collapse_top(binary, 0, PARALLEL_LEVELS, &mut top, &mut frontier);
+    let pieces: Vec<Vec<WideNode>> = frontier
+        .par_iter()
+        .map(|lane| {
+            let mut piece = Vec::new();
+            collapse_subtree(binary, lane.binary, &mut piece);
+            piece
+        })
+        .collect();
+    let total = top.len() + pieces.iter().map(Vec::len).sum::<usize>();
+    let mut wide = Vec::with_capacity(total);
+    wide.extend_from_slice(&top);
+    for (lane, piece) in frontier.iter().zip(&pieces) {
+        let offset = wide.len() as u32;
+        wide[lane.node].children[lane.lane] = offset;
+        wide.extend(piece.iter().map(|node| node.with_children_offset(offset)));
+    }
     wide
 }
 
-fn collapse_node(binary: &[BvhNode], index: usize, wide: &mut Vec<WideNode>) -> u32 {
+/// Wide levels made before the subtrees below them are collapsed in parallel (up to 64
+/// subtrees): the collapse is a chain of dependent loads through the binary nodes, and
+/// one core walking them all was a fifth of a 365 k-instance top-level build.
+const PARALLEL_LEVELS: usize = 2;
+
+/// An interior lane of a top-level wide node whose subtree is collapsed separately.
+struct FrontierLane {
+    node: usize,
+    lane: usize,
+    binary: usize,
+}
+
+impl WideNode {
+    /// This node with `offset` added to its interior children's indices.
+    fn with_children_offset(mut self, offset: u32) -> Self {
+        for lane in 0..WIDTH {
+            if self.is_used(lane) && self.counts[lane] == 0 {
+                self.children[lane] += offset;
+            }
+        }
+        self
+    }
+}
+
+/// The binary nodes that become the lanes of the wide node made from interior node
+/// `index`, in tree order.
+fn open_lanes(binary: &[BvhNode], index: usize) -> ([usize; WIDTH], usize) {
+    // Fixed arrays: a heap-allocated lane list per node cost more than the rest of the
+    // collapse together. Leaves get area −1 so they are never opened.
+    let area_of = |node: usize| {
+        let n = &binary[node];
+        if n.is_leaf() {
+            -1.0
+        } else {
+            n.bounds().surface_area()
+        }
+    };
     let first = binary[index].first() as usize;
-    // A fixed array: a heap-allocated lane list per node cost more than the rest of the
-    // collapse together.
     let mut lanes = [0; WIDTH];
+    let mut areas = [0.0f32; WIDTH];
     lanes[0] = first;
     lanes[1] = first + 1;
+    areas[0] = area_of(first);
+    areas[1] = area_of(first + 1);
     let mut len = 2;
     while len < WIDTH {
         let mut widest: Option<(usize, f32)> = None;
-        for (position, &node) in lanes[..len].iter().enumerate() {
-            let candidate = &binary[node];
-            if candidate.is_leaf() {
-                continue;
-            }
-            let area = candidate.bounds().surface_area();
-            if widest.is_none_or(|(_, best)| area > best) {
+        for (position, &area) in areas[..len].iter().enumerate() {
+            if area >= 0.0 && widest.is_none_or(|(_, best)| area > best) {
                 widest = Some((position, area));
             }
         }
@@ -139,12 +190,20 @@ fn collapse_node(binary: &[BvhNode], index: usize, wide: &mut Vec<WideNode>) -> 
         let child = binary[lanes[position]].first() as usize;
         // The opened node's two children take its place, in order.
         lanes.copy_within(position + 1..len, position + 2);
+        areas.copy_within(position + 1..len, position + 2);
         lanes[position] = child;
         lanes[position + 1] = child + 1;
+        areas[position] = area_of(child);
+        areas[position + 1] = area_of(child + 1);
         len += 1;
     }
-    let at = wide.len();
-    wide.push(WideNode::empty());
+    (lanes, len)
+}
+
+/// The wide node made from interior binary node `index`, with its leaf lanes filled in
+/// and its interior lanes' binary nodes.
+fn wide_node(binary: &[BvhNode], index: usize) -> (WideNode, [usize; WIDTH], usize) {
+    let (lanes, len) = open_lanes(binary, index);
     let mut node = WideNode::empty();
     for (lane, &child) in lanes[..len].iter().enumerate() {
         let c = &binary[child];
@@ -152,8 +211,50 @@ fn collapse_node(binary: &[BvhNode], index: usize, wide: &mut Vec<WideNode>) -> 
         if c.is_leaf() {
             node.children[lane] = c.first();
             node.counts[lane] = c.count();
+        }
+    }
+    (node, lanes, len)
+}
+
+/// Makes the top `levels` wide levels under interior binary node `index` into `top`,
+/// recording the interior lanes below them in `frontier`; returns the node's index.
+fn collapse_top(
+    binary: &[BvhNode],
+    index: usize,
+    levels: usize,
+    top: &mut Vec<WideNode>,
+    frontier: &mut Vec<FrontierLane>,
+) -> u32 {
+    let (mut node, lanes, len) = wide_node(binary, index);
+    let at = top.len();
+    top.push(node);
+    for lane in 0..len {
+        if binary[lanes[lane]].is_leaf() {
+            continue;
+        }
+        if levels > 1 {
+            node.children[lane] = collapse_top(binary, lanes[lane], levels - 1, top, frontier);
         } else {
-            node.children[lane] = collapse_node(binary, child, wide);
+            frontier.push(FrontierLane {
+                node: at,
+                lane,
+                binary: lanes[lane],
+            });
+        }
+    }
+    top[at] = node;
+    at as u32
+}
+
+/// Appends the wide subtree of interior binary node `index` to `wide` (its root first,
+/// child indices relative to the start of `wide`); returns the root's index.
+fn collapse_subtree(binary: &[BvhNode], index: usize, wide: &mut Vec<WideNode>) -> u32 {
+    let (mut node, lanes, len) = wide_node(binary, index);
+    let at = wide.len();
+    wide.push(node);
+    for lane in 0..len {
+        if !binary[lanes[lane]].is_leaf() {
+            node.children[lane] = collapse_subtree(binary, lanes[lane], wide);
         }
     }
     wide[at] = node;
