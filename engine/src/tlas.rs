@@ -82,6 +82,9 @@ pub struct TopLevel {
     pub current_sah_cost: f64,
     /// Slot boxes of the refit in progress, kept to reuse the allocation.
     refit_scratch: Vec<Aabb>,
+    /// Records of the refit in progress (the previous ones after it), kept to reuse the
+    /// allocation.
+    refit_records: Vec<InstanceRecord>,
 }
 
 /// Why [`TopLevel::refit`] refused; the TLAS is unchanged and must be rebuilt instead.
@@ -156,6 +159,23 @@ fn record(
         geometry: desc.geometry,
         id,
     })
+}
+
+/// An instance's world box and record, computing its inverse once, or why it cannot
+/// enter the tree.
+fn placed(
+    library: &GeometryLibrary,
+    id: u32,
+    desc: &InstanceDesc,
+) -> Result<(Aabb, InstanceRecord), Unusable> {
+    let (geometry, world_to_object) = usable(library, desc)?;
+    let record = InstanceRecord {
+        object_to_world: desc.transform,
+        world_to_object,
+        geometry: desc.geometry,
+        id,
+    };
+    Ok((geometry.bounds().transformed(&desc.transform), record))
 }
 
 /// Summed surface area of instance boxes (at least the smallest positive f64, so a ratio
@@ -233,6 +253,7 @@ impl TopLevel {
             built_sah_cost,
             current_sah_cost: built_sah_cost,
             refit_scratch: Vec::new(),
+            refit_records: Vec::new(),
         }
     }
 
@@ -255,23 +276,30 @@ impl TopLevel {
                 given: instances.len(),
             });
         }
-        // First check every slot, writing only scratch boxes, so a refusal leaves the
-        // tree as it was; then move the records in place (recomputing the inverses is
-        // cheaper than holding a second copy of every record).
+        // First compute every slot's box and record into scratch vectors, so a refusal
+        // leaves the tree as it was; then swap the records in. One pass computes each
+        // inverse once (checking and recomputing them in place cost twice the time),
+        // for a second set of records kept between refits.
         let mut slot_bounds = std::mem::take(&mut self.refit_scratch);
+        let mut records = std::mem::take(&mut self.refit_records);
         slot_bounds.resize(self.instances.len(), Aabb::EMPTY);
+        if let Some(&any) = self.instances.first() {
+            records.resize(self.instances.len(), any);
+        }
         let checked = slot_bounds
             .par_iter_mut()
+            .zip(records.par_iter_mut())
             .zip(self.instances.par_iter())
-            .try_for_each(|(out, record)| {
-                let instance = record.id;
+            .try_for_each(|((out_bounds, out_record), old)| {
+                let instance = old.id;
                 let desc = &instances[instance as usize];
-                match world_bounds(library, desc) {
-                    Ok(_) if desc.geometry != record.geometry => {
+                match placed(library, instance, desc) {
+                    Ok(_) if desc.geometry != old.geometry => {
                         Err(RefitRefusal::GeometryChanged { instance })
                     }
-                    Ok(bounds) if is_hittable(&bounds) => {
-                        *out = bounds;
+                    Ok((bounds, record)) if is_hittable(&bounds) => {
+                        *out_bounds = bounds;
+                        *out_record = record;
                         Ok(())
                     }
                     _ => Err(RefitRefusal::UsableSetChanged { instance }),
@@ -289,15 +317,14 @@ impl TopLevel {
             });
         if let Err(refusal) = checked {
             self.refit_scratch = slot_bounds;
+            self.refit_records = records;
             return Err(refusal);
         }
         self.bvh
             .refit(&slot_bounds)
             .expect("every slot box was checked finite and non-empty");
-        self.instances.par_iter_mut().for_each(|slot| {
-            let id = slot.id;
-            *slot = record(library, id, &instances[id as usize]).expect("checked above");
-        });
+        std::mem::swap(&mut self.instances, &mut records);
+        self.refit_records = records;
         self.current_sah_cost = self.bvh.sah_cost() / primitive_area(&slot_bounds);
         self.refit_scratch = slot_bounds;
         Ok(self.degradation())
@@ -333,7 +360,10 @@ impl TopLevel {
 
     /// Heap bytes held.
     pub fn memory_bytes(&self) -> usize {
-        self.instances.capacity() * std::mem::size_of::<InstanceRecord>() + self.bvh.memory_bytes()
+        (self.instances.capacity() + self.refit_records.capacity())
+            * std::mem::size_of::<InstanceRecord>()
+            + self.refit_scratch.capacity() * std::mem::size_of::<Aabb>()
+            + self.bvh.memory_bytes()
     }
 
     /// The record of slot `slot`.
