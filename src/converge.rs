@@ -9,6 +9,7 @@ use std::io::Write;
 use std::path::Path;
 use std::time::{Duration, Instant};
 use sylva_engine::Camera;
+use sylva_engine::discontinuity::{DiscontinuityFilter, FilteredImage};
 use sylva_engine::film::Film;
 use sylva_engine::interleave::LightInterleave;
 use sylva_engine::metrics::image_error;
@@ -30,6 +31,9 @@ pub struct Setting {
     pub interleave: LightInterleave,
     /// Worker threads (0 = one per core).
     pub threads: usize,
+    /// The display filter whose output is measured, if any (the film is measured
+    /// without it).
+    pub filter: Option<DiscontinuityFilter>,
 }
 
 impl Setting {
@@ -43,6 +47,9 @@ impl Setting {
             transparency: Some(TransparencyCurve::default()),
             interleave: LightInterleave::default(),
             threads: 0,
+            filter: Some(DiscontinuityFilter::for_pattern(
+                LightInterleave::default().pattern,
+            )),
         }
     }
 
@@ -53,21 +60,29 @@ impl Setting {
             samples_per_pixel: 4,
             light_samples: 4,
             transparency: None,
+            filter: None,
             ..Self::interactive()
         }
     }
 
-    /// The comparisons `sylva converge` runs by default: interleaved vs independent light
-    /// picks (both exact), adaptive transparency on vs off, interactive vs still, and the
+    /// The comparisons `sylva converge` runs by default: the interactive preset with and
+    /// without its display filter, interleaved vs independent light picks (both exact,
+    /// unfiltered), adaptive transparency on vs off, interactive vs still, and the
     /// interactive preset on 1 thread.
     pub fn standard() -> Vec<Setting> {
         let exact = Setting {
             name: "interactive-exact".into(),
             transparency: None,
+            filter: None,
             ..Self::interactive()
         };
         vec![
             Self::interactive(),
+            Setting {
+                name: "interactive-unfiltered".into(),
+                filter: None,
+                ..Self::interactive()
+            },
             exact.clone(),
             Setting {
                 name: "interactive-exact-random".into(),
@@ -104,6 +119,11 @@ impl Setting {
             Some(curve) => entity.insert(curve),
             None => entity.remove::<TransparencyCurve>(),
         };
+        entity.remove::<FilteredImage>();
+        match self.filter {
+            Some(filter) => entity.insert(filter),
+            None => entity.remove::<DiscontinuityFilter>(),
+        };
         Ok(())
     }
 }
@@ -129,6 +149,16 @@ pub fn film_pixels(world: &World, camera: Entity) -> Vec<Vec3> {
         .get::<Film>(camera)
         .map(|film| film.mean_rgb().into_iter().map(Vec3::from).collect())
         .unwrap_or_default()
+}
+
+/// What `camera` shows: its filtered image when it has one of the film's current frame
+/// count, else the film's means.
+pub fn shown_pixels(world: &World, camera: Entity) -> Vec<Vec3> {
+    let frames = world.get::<Film>(camera).map_or(0, Film::frames);
+    match world.get::<FilteredImage>(camera) {
+        Some(image) if image.frames == frames => image.pixels.clone(),
+        _ => film_pixels(world, camera),
+    }
 }
 
 /// Renders `frames` progressive frames of `camera` with the current settings and a
@@ -171,7 +201,7 @@ pub fn measure(
         let start = Instant::now();
         schedule.run(world);
         rendering += start.elapsed();
-        let error = image_error(reference, &film_pixels(world, camera)).unwrap_or_default();
+        let error = image_error(reference, &shown_pixels(world, camera)).unwrap_or_default();
         let sample = ErrorSample {
             frame,
             time_s: rendering.as_secs_f64(),

@@ -7,10 +7,12 @@ use std::path::{Path, PathBuf};
 use std::sync::Arc;
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::time::{Duration, Instant};
+use sylva::engine::discontinuity::{DiscontinuityFilter, FilteredImage};
 use sylva::engine::film::{ImageKind, Tile};
 use sylva::engine::tlas::TopLevel;
 use sylva::prelude::*;
 use sylva::scenes::SceneBuild;
+use sylva::systems::shown_film;
 use tracing_subscriber::prelude::*;
 
 mod cli {
@@ -78,8 +80,8 @@ struct ConvergeArgs {
     /// transparency, a sampler seed of its own.
     #[arg(long, default_value_t = 64, allow_negative_numbers = true, value_parser = clap::value_parser!(u32).range(1..))]
     reference_frames: u32,
-    /// Settings to run, comma-separated [default: interactive, interactive-exact,
-    /// interactive-exact-random, still, interactive-1-thread].
+    /// Settings to run, comma-separated [default: interactive, interactive-unfiltered,
+    /// interactive-exact, interactive-exact-random, still, interactive-1-thread].
     #[arg(long, value_delimiter = ',', value_name = "NAMES")]
     configs: Vec<String>,
     /// Output directory (created if missing; holds the cached reference).
@@ -209,6 +211,12 @@ struct RenderArgs {
     /// different light subsets, rotating every sample (1 = off, independent picks).
     #[arg(long, value_name = "N", default_value_t = 4, allow_negative_numbers = true, value_parser = clap::value_parser!(u32).range(1..=64))]
     interleave: u32,
+    /// The discontinuity filter on the written image: each pixel averages the light
+    /// (not the texture) of its N×N interleaving window over neighbours on the same
+    /// surface; the accumulated film and checkpoints stay unfiltered [default: on with
+    /// --preset interactive, else off].
+    #[arg(long, value_enum, value_name = "on|off")]
+    filter: Option<Switch>,
     /// Light subsets for --interleave [default: N²].
     #[arg(long, value_name = "S", allow_negative_numbers = true, value_parser = clap::value_parser!(u32).range(1..=65536))]
     subsets: Option<u32>,
@@ -461,6 +469,14 @@ fn image_metadata(
         ("sylva.light_samples", light_samples.to_string()),
         ("sylva.adaptive_transparency", curve),
         (
+            "sylva.filter",
+            if display_filter(args) == Switch::On {
+                format!("discontinuity {0}x{0}", args.interleave)
+            } else {
+                "off".to_string()
+            },
+        ),
+        (
             "sylva.interleave",
             format!(
                 "{} ({} subsets)",
@@ -489,6 +505,14 @@ fn image_metadata(
 }
 
 /// Identifies everything a checkpoint's pixels depend on.
+/// Whether the written image goes through the discontinuity filter.
+fn display_filter(args: &RenderArgs) -> Switch {
+    args.filter.unwrap_or(match args.preset {
+        Some(Preset::Interactive) => Switch::On,
+        _ => Switch::Off,
+    })
+}
+
 fn checkpoint_fingerprint(
     args: &RenderArgs,
     width: u32,
@@ -581,6 +605,9 @@ fn render(args: RenderArgs) -> Result<()> {
     if let Some(curve) = transparency {
         camera.insert(curve);
     }
+    if display_filter(&args) == Switch::On {
+        camera.insert(DiscontinuityFilter::for_pattern(args.interleave));
+    }
     let fingerprint = checkpoint_fingerprint(&args, width, spp, samples, transparency, interleave);
     if let Some(path) = &args.resume {
         let film = Film::read_checkpoint(path, fingerprint)?;
@@ -644,7 +671,11 @@ fn render(args: RenderArgs) -> Result<()> {
                 .expect("cameras have films");
             let metadata =
                 image_metadata(&args, film, width, spp, samples, transparency, interleave);
-            film.write_with(&snapshot_path(&args.out, frames), args.exposure, &metadata)?;
+            shown_film(film, world.get::<FilteredImage>(spawned.camera)).write_with(
+                &snapshot_path(&args.out, frames),
+                args.exposure,
+                &metadata,
+            )?;
         }
         let done = match args.time {
             Some(budget) => start.elapsed() >= budget || frames >= args.frames.unwrap_or(u32::MAX),
@@ -661,7 +692,11 @@ fn render(args: RenderArgs) -> Result<()> {
         .get::<Film>(spawned.camera)
         .ok_or_else(|| anyhow::anyhow!("the camera has no film"))?;
     let metadata = image_metadata(&args, film, width, spp, samples, transparency, interleave);
-    film.write_with(&args.out, args.exposure, &metadata)?;
+    shown_film(film, world.get::<FilteredImage>(spawned.camera)).write_with(
+        &args.out,
+        args.exposure,
+        &metadata,
+    )?;
     if let Some(path) = &args.checkpoint {
         film.write_checkpoint(path, fingerprint)?;
     }

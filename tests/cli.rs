@@ -889,3 +889,78 @@ fn interleaved_sampling_leaves_no_structure_and_no_extra_noise() {
         }
     }
 }
+
+/// The discontinuity filter (on by default with `--preset interactive`) lowers the error
+/// of a first interactive frame, leaves no structure, and is gone once the pattern has
+/// cycled (16 frames for 4×4): then the image is the unfiltered one, bit for bit.
+#[test]
+fn the_discontinuity_filter_cleans_early_interactive_frames_and_fades_out() {
+    let dir = temp_dir("discontinuity");
+    let render = |out: &str, extra: &[&str]| {
+        let path = dir.join(format!("{out}.exr"));
+        let mut args = vec![
+            "render",
+            "--scene",
+            "meadow",
+            "--preset",
+            "interactive",
+            "--width",
+            "160",
+            "--height",
+            "120",
+            "--quiet",
+        ];
+        args.extend_from_slice(extra);
+        args.extend_from_slice(&["--out", path.to_str().unwrap()]);
+        succeed(&args);
+        read_exr_any_width(&path)
+    };
+    // Reference: unfiltered frames 2..=65, independent of the first frame under test.
+    let checkpoint = dir.join("first.film");
+    let (width, first) = render(
+        "first",
+        &[
+            "--filter",
+            "off",
+            "--checkpoint",
+            checkpoint.to_str().unwrap(),
+        ],
+    );
+    let (_, all) = render(
+        "all",
+        &[
+            "--filter",
+            "off",
+            "--frames",
+            "65",
+            "--resume",
+            checkpoint.to_str().unwrap(),
+        ],
+    );
+    let reference: Vec<[f32; 4]> = all
+        .iter()
+        .zip(&first)
+        .map(|(a, f)| [0, 1, 2, 3].map(|c| (65.0 * a[c] - f[c]) / 64.0))
+        .collect();
+    let (_, filtered) = render("filtered", &[]);
+    let raw = relative_mse_and_periodic_share(&first, &reference, width, 4);
+    let cleaned = relative_mse_and_periodic_share(&filtered, &reference, width, 4);
+    eprintln!("first frame: unfiltered {raw:?}, filtered {cleaned:?}");
+    assert!(
+        cleaned.0 < 0.8 * raw.0,
+        "filtered relMSE {} against unfiltered {}",
+        cleaned.0,
+        raw.0
+    );
+    assert!(
+        cleaned.1 <= 0.005,
+        "{:.3} % of the error repeats",
+        100.0 * cleaned.1
+    );
+    let (_, late_on) = render("late-on", &["--frames", "16"]);
+    let (_, late_off) = render("late-off", &["--frames", "16", "--filter", "off"]);
+    assert!(
+        late_on == late_off,
+        "the filter must be gone after a full cycle"
+    );
+}

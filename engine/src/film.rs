@@ -3,6 +3,7 @@
 //! turn into PNG (exposure, filmic tone curve, sRGB) or EXR (linear radiance).
 
 use crate::bvh::TraversalStats;
+use crate::render::SurfaceGuide;
 use crate::shading::linear_to_srgb;
 use bevy_ecs::component::Component;
 use glam::Vec3;
@@ -54,6 +55,10 @@ pub struct TileResult {
     pub sums: Vec<Vec3>,
     /// Accepted samples per pixel.
     pub counts: Vec<u32>,
+    /// Sum of the accepted samples' albedos per pixel.
+    pub albedo_sums: Vec<Vec3>,
+    /// The surface of each pixel's first accepted sample.
+    pub surfaces: Vec<SurfaceGuide>,
     /// Samples dropped because they were NaN or infinite.
     pub rejected: u64,
     /// Traversal counters.
@@ -71,6 +76,10 @@ pub struct FrameBuffer {
     pub sums: Vec<Vec3>,
     /// Per-pixel accepted sample counts.
     pub counts: Vec<u32>,
+    /// Per-pixel sums of the accepted samples' albedos (see [`TileResult`]).
+    pub albedo_sums: Vec<Vec3>,
+    /// Per-pixel surface of the first accepted sample.
+    pub surfaces: Vec<SurfaceGuide>,
     /// NaN/Inf samples dropped in this frame.
     pub rejected: u64,
     /// Counters of this frame.
@@ -94,6 +103,8 @@ impl FrameBuffer {
             height,
             sums: vec![Vec3::ZERO; n],
             counts: vec![0; n],
+            albedo_sums: vec![Vec3::ZERO; n],
+            surfaces: vec![SurfaceGuide::NONE; n],
             rejected: 0,
             stats: TraversalStats::default(),
             frame_index,
@@ -109,9 +120,20 @@ impl FrameBuffer {
             let n = t.width as usize;
             self.sums[dst..dst + n].copy_from_slice(&result.sums[src..src + n]);
             self.counts[dst..dst + n].copy_from_slice(&result.counts[src..src + n]);
+            self.albedo_sums[dst..dst + n].copy_from_slice(&result.albedo_sums[src..src + n]);
+            self.surfaces[dst..dst + n].copy_from_slice(&result.surfaces[src..src + n]);
         }
         self.rejected += result.rejected;
         self.stats.add(&result.stats);
+    }
+
+    /// Mean albedo per pixel (zero where no sample was accepted).
+    pub fn mean_albedo(&self) -> Vec<Vec3> {
+        self.albedo_sums
+            .iter()
+            .zip(&self.counts)
+            .map(|(s, &c)| if c > 0 { *s / c as f32 } else { Vec3::ZERO })
+            .collect()
     }
 
     /// Mean radiance per pixel (zero where no sample was accepted).
@@ -388,6 +410,17 @@ impl Film {
         let i = (y * self.width + x) as usize;
         let c = self.counts[i].max(1) as f64;
         self.sums[i].map(|s| s / c)
+    }
+
+    /// This film with every pixel's mean replaced by `means` (row-major), sample
+    /// counts kept: what a display filter hands to the image writers.
+    pub fn with_means(&self, means: &[Vec3]) -> Film {
+        assert_eq!(means.len(), self.counts.len(), "one mean per pixel");
+        let mut film = self.clone();
+        for ((sum, &count), mean) in film.sums.iter_mut().zip(&self.counts).zip(means) {
+            *sum = mean.to_array().map(|v| v as f64 * count as f64);
+        }
+        film
     }
 
     /// Mean radiance of every pixel, row-major, as f32 RGB.

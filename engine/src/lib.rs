@@ -9,6 +9,7 @@
 pub mod bvh;
 pub mod camera;
 pub mod components;
+pub mod discontinuity;
 pub mod environment;
 pub mod film;
 pub mod geometry;

@@ -122,6 +122,44 @@ impl SampleShading {
     }
 }
 
+/// One camera sample's shading: its radiance, the albedo that radiance is linear in,
+/// and the surface it saw.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct ShadedSample {
+    /// Radiance along the camera ray.
+    pub radiance: Vec3A,
+    /// Reflectance the light was multiplied by (1 for the environment seen directly).
+    pub albedo: Vec3A,
+    /// The surface hit, or [`SurfaceGuide::NONE`].
+    pub surface: SurfaceGuide,
+}
+
+/// What the discontinuity filter compares to decide whether two pixels see the same
+/// surface.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct SurfaceGuide {
+    /// Distance from the camera (infinite: no surface).
+    pub depth: f32,
+    /// Geometric normal facing the camera.
+    pub normal: Vec3,
+    /// Shader id.
+    pub shader: u32,
+}
+
+impl SurfaceGuide {
+    /// No surface: the ray left the scene.
+    pub const NONE: SurfaceGuide = SurfaceGuide {
+        depth: f32::INFINITY,
+        normal: Vec3::ZERO,
+        shader: u32::MAX,
+    };
+
+    /// True when a surface was hit.
+    pub fn is_surface(&self) -> bool {
+        self.depth.is_finite()
+    }
+}
+
 /// What the hit filter made of a candidate.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 enum FilterOutcome {
@@ -425,9 +463,26 @@ impl<'a> RenderScene<'a> {
         shading: &SampleShading,
         stats: &mut TraversalStats,
     ) -> Vec3A {
+        self.shade(ray, key, shading, stats).radiance
+    }
+
+    /// [`radiance`](Self::radiance) with the albedo it was modulated by and the surface
+    /// it came from (for the discontinuity filter); the environment seen directly has
+    /// albedo 1 and no surface.
+    pub fn shade(
+        &self,
+        ray: &Ray,
+        key: &SampleKey,
+        shading: &SampleShading,
+        stats: &mut TraversalStats,
+    ) -> ShadedSample {
         let curve = shading.transparency.as_ref();
         let Some((hit, opaque_hole)) = self.closest_adaptive(ray, curve, stats) else {
-            return self.lights.environment(ray.direction);
+            return ShadedSample {
+                radiance: self.lights.environment(ray.direction),
+                albedo: Vec3A::ONE,
+                surface: SurfaceGuide::NONE,
+            };
         };
         let surface = self.surface(&hit, ray.direction);
         let shader = self.shaders.get(surface.shader);
@@ -480,7 +535,15 @@ impl<'a> RenderScene<'a> {
                 }
             }
         }
-        radiance
+        ShadedSample {
+            radiance,
+            albedo,
+            surface: SurfaceGuide {
+                depth: hit.t * ray.direction.length(),
+                normal: ng.into(),
+                shader: surface.shader,
+            },
+        }
     }
 }
 
@@ -497,6 +560,8 @@ pub fn render_tile(
         tile,
         sums: Vec::with_capacity(tile.pixel_count()),
         counts: Vec::with_capacity(tile.pixel_count()),
+        albedo_sums: Vec::with_capacity(tile.pixel_count()),
+        surfaces: Vec::with_capacity(tile.pixel_count()),
         rejected: 0,
         stats: TraversalStats::default(),
     };
@@ -508,6 +573,8 @@ pub fn render_tile(
     for y in tile.y..tile.y + tile.height {
         for x in tile.x..tile.x + tile.width {
             let (mut sum, mut count) = (Vec3::ZERO, 0u32);
+            let mut albedo_sum = Vec3::ZERO;
+            let mut surface = SurfaceGuide::NONE;
             for sample in 0..spp {
                 let key = SampleKey::new(params.seed, x, y, frame, sample);
                 shading.light_subset = params
@@ -515,10 +582,15 @@ pub fn render_tile(
                     .map(|subsets| (subsets, subsets.subset(x, y, frame, sample, spp)));
                 let film = Vec2::new(x as f32, y as f32) + key.get2(0);
                 let ray = view.ray(film, key.get2(2));
-                let radiance = Vec3::from(scene.radiance(&ray, &key, &shading, &mut result.stats));
+                let shaded = scene.shade(&ray, &key, &shading, &mut result.stats);
+                let radiance = Vec3::from(shaded.radiance);
                 // The NaN firewall: a bad sample is counted and dropped, never averaged.
                 if radiance.is_finite() {
+                    if count == 0 {
+                        surface = shaded.surface;
+                    }
                     sum += radiance;
+                    albedo_sum += Vec3::from(shaded.albedo);
                     count += 1;
                 } else {
                     result.rejected += 1;
@@ -526,6 +598,8 @@ pub fn render_tile(
             }
             result.sums.push(sum);
             result.counts.push(count);
+            result.albedo_sums.push(albedo_sum);
+            result.surfaces.push(surface);
         }
     }
     result

@@ -14,7 +14,9 @@
 //!    lights), run when their inputs change;
 //! 4. `Render` — [`render_tiles`], tiles in parallel on the one [`RenderPool`];
 //! 5. `Accumulate` — [`accumulate`] into each camera's `Film`;
-//! 6. `Output` — [`output`] writes requested images.
+//! 6. `Display` — [`filter_display`]: the discontinuity filter of cameras with a
+//!    `DiscontinuityFilter` (only when some camera has one), into a `FilteredImage`;
+//! 7. `Output` — [`output`] writes requested images (filtered where there is one).
 //!
 //! Threads: all data-parallel work (tiles, BVH builds) runs on the rayon [`RenderPool`];
 //! bevy's task pool only runs the systems themselves, whose threads block while the pool
@@ -49,6 +51,8 @@ pub enum RenderSystems {
     Render,
     /// Frames are added to films.
     Accumulate,
+    /// Films are filtered for display.
+    Display,
     /// Images are written.
     Output,
 }
@@ -240,6 +244,7 @@ pub fn frame_schedule() -> Schedule {
             RenderSystems::Plan,
             RenderSystems::Render,
             RenderSystems::Accumulate,
+            RenderSystems::Display,
             RenderSystems::Output,
         )
             .chain(),
@@ -270,6 +275,9 @@ pub fn frame_schedule() -> Schedule {
             .run_if(any_with_component::<sylva_engine::camera::Camera>)
             .in_set(RenderSystems::Render),
         accumulate.in_set(RenderSystems::Accumulate),
+        filter_display
+            .run_if(any_with_component::<sylva_engine::discontinuity::DiscontinuityFilter>)
+            .in_set(RenderSystems::Display),
         output
             .run_if(any_with_component::<ImageOutput>)
             .in_set(RenderSystems::Output),

@@ -8,6 +8,7 @@ use bevy_ecs::prelude::*;
 use std::time::Instant;
 use sylva_engine::camera::{Camera, CameraView};
 use sylva_engine::components::{Hidden, Instance, Transform};
+use sylva_engine::discontinuity::{DiscontinuityFilter, FilteredImage};
 use sylva_engine::environment::EnvironmentLight;
 use sylva_engine::film::{Film, FrameBuffer, Tile};
 use sylva_engine::geometry::GeometryLibrary;
@@ -398,17 +399,60 @@ pub fn accumulate(mut cameras: Query<(&FrameBuffer, &mut Film), Changed<FrameBuf
     }
 }
 
-/// Writes the films of cameras whose [`ImageOutput`] frame count has been reached.
+/// Filters the film of each camera with a [`DiscontinuityFilter`] into its
+/// [`FilteredImage`]: the film's means, demodulated by the latest frame's albedo and
+/// compared by its surfaces. The film itself is left as accumulated.
+pub fn filter_display(
+    mut commands: Commands,
+    cameras: Query<(Entity, &Film, &FrameBuffer, &DiscontinuityFilter), Changed<Film>>,
+) {
+    let _span = tracing::info_span!("filter_display").entered();
+    for (entity, film, frame, filter) in &cameras {
+        if frame.width != film.width() || frame.height != film.height() {
+            continue;
+        }
+        let means: Vec<glam::Vec3> = film.mean_rgb().into_iter().map(glam::Vec3::from).collect();
+        let pixels = filter.apply_progressive(
+            film.frames(),
+            film.width(),
+            film.height(),
+            &means,
+            &frame.mean_albedo(),
+            &frame.surfaces,
+        );
+        commands.entity(entity).insert(FilteredImage {
+            pixels,
+            frames: film.frames(),
+        });
+    }
+}
+
+/// The image a camera shows: its film, with the filtered means when a [`FilteredImage`]
+/// of the film's current frame count exists.
+pub fn shown_film<'a>(
+    film: &'a Film,
+    filtered: Option<&FilteredImage>,
+) -> std::borrow::Cow<'a, Film> {
+    match filtered {
+        Some(image) if image.frames == film.frames() => {
+            std::borrow::Cow::Owned(film.with_means(&image.pixels))
+        }
+        _ => std::borrow::Cow::Borrowed(film),
+    }
+}
+
+/// Writes the films of cameras whose [`ImageOutput`] frame count has been reached
+/// (filtered where the camera has a [`FilteredImage`]).
 pub fn output(
-    cameras: Query<(&Camera, &Film, &ImageOutput), Changed<Film>>,
+    cameras: Query<(&Camera, &Film, &ImageOutput, Option<&FilteredImage>), Changed<Film>>,
     mut log: ResMut<OutputLog>,
 ) {
-    for (camera, film, request) in &cameras {
+    for (camera, film, request, filtered) in &cameras {
         if film.frames() != request.after_frames {
             continue;
         }
         let _span = tracing::info_span!("output", path = %request.path.display()).entered();
-        let result = film
+        let result = shown_film(film, filtered)
             .write(&request.path, camera.exposure)
             .map(|()| request.path.clone())
             .map_err(|e| e.to_string());

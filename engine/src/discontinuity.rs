@@ -1,0 +1,237 @@
+//! The discontinuity buffer (Keller & Heidrich 2001; Wald et al. 2002): the display
+//! filter that finishes interleaved sampling. Each pixel averages the *light* it
+//! received — its radiance divided by its albedo — over an N×N window of neighbours that
+//! see the same surface (same shader, close depth and normal), then multiplies its own
+//! albedo back, so textures stay sharp and light does not bleed across edges. It runs on
+//! what is shown or written, never on the film being accumulated, so progressive
+//! refinement stays unbiased.
+
+use crate::render::SurfaceGuide;
+use bevy_ecs::component::Component;
+use glam::Vec3;
+
+/// A camera's filtered image: per-pixel means of its film after [`DiscontinuityFilter`],
+/// for display and output (the film itself stays unfiltered).
+#[derive(Component, Clone, Debug, PartialEq)]
+pub struct FilteredImage {
+    /// Row-major filtered means.
+    pub pixels: Vec<Vec3>,
+    /// Frames the film held when it was filtered.
+    pub frames: u32,
+}
+
+/// Settings of the filter, as a camera component: cameras without it are not filtered.
+#[derive(Component, Clone, Copy, Debug, PartialEq)]
+pub struct DiscontinuityFilter {
+    /// Window size N (the interleaving pattern's): every N×N window holds each of its
+    /// pixel classes once. 1 leaves the image as it is.
+    pub window: u32,
+    /// Largest relative depth difference of a neighbour on the same surface.
+    pub depth_tolerance: f32,
+    /// Smallest cosine between the normals of a neighbour on the same surface.
+    pub normal_cosine: f32,
+}
+
+impl DiscontinuityFilter {
+    /// The filter for interleaving with an N×N pattern: 5 % depth, 25° normals.
+    pub fn for_pattern(window: u32) -> Self {
+        Self {
+            window: window.max(1),
+            depth_tolerance: 0.05,
+            normal_cosine: 0.9,
+        }
+    }
+
+    /// How much of the filtered image to show over a film of `frames` frames: all of it
+    /// for the first frame, fading linearly to none once every pixel has been through
+    /// the whole N×N pattern (N² frames). By then the average over the window adds
+    /// little but its bias (light smeared within a surface): at 16 frames of `meadow` the
+    /// fully filtered image had 3× the error of the raw one.
+    pub fn strength(&self, frames: u32) -> f32 {
+        let cycle = (self.window * self.window) as f32;
+        (1.0 - frames.saturating_sub(1) as f32 / (cycle - 1.0).max(1.0)).clamp(0.0, 1.0)
+    }
+
+    /// [`apply`](Self::apply) at the [`strength`](Self::strength) for a film of `frames`
+    /// frames: a blend of the filtered and the raw means.
+    pub fn apply_progressive(
+        &self,
+        frames: u32,
+        width: u32,
+        height: u32,
+        radiance: &[Vec3],
+        albedo: &[Vec3],
+        surfaces: &[SurfaceGuide],
+    ) -> Vec<Vec3> {
+        let strength = self.strength(frames);
+        if strength == 0.0 {
+            return radiance.to_vec();
+        }
+        let filtered = self.apply(width, height, radiance, albedo, surfaces);
+        filtered
+            .iter()
+            .zip(radiance)
+            .map(|(f, r)| *r + (*f - *r) * strength)
+            .collect()
+    }
+
+    /// True when pixel surfaces `a` and `b` are the same surface for the filter.
+    fn same_surface(&self, a: &SurfaceGuide, b: &SurfaceGuide) -> bool {
+        a.shader == b.shader
+            && b.is_surface()
+            && (a.depth - b.depth).abs() <= self.depth_tolerance * a.depth
+            && a.normal.dot(b.normal) >= self.normal_cosine
+    }
+
+    /// Filters a `width`×`height` image: `radiance` and `albedo` are per-pixel means,
+    /// `surfaces` the surface each pixel saw. Pixels without a surface, or with an
+    /// albedo channel too dark to divide by, keep their radiance; so do neighbours'
+    /// contributions that cannot be demodulated (they are left out of the average).
+    pub fn apply(
+        &self,
+        width: u32,
+        height: u32,
+        radiance: &[Vec3],
+        albedo: &[Vec3],
+        surfaces: &[SurfaceGuide],
+    ) -> Vec<Vec3> {
+        let (w, h) = (width as usize, height as usize);
+        assert!(
+            radiance.len() == w * h && albedo.len() == w * h && surfaces.len() == w * h,
+            "filter buffers must hold width × height pixels"
+        );
+        const DARKEST: f32 = 1e-4;
+        let demodulable = |i: usize| albedo[i].min_element() > DARKEST;
+        let n = self.window as isize;
+        // A centred window: offsets -(n/2) .. n - 1 - n/2 cover every pixel class once.
+        let (lo, hi) = (-(n / 2), n - 1 - n / 2);
+        let mut out = radiance.to_vec();
+        if n <= 1 {
+            return out;
+        }
+        for y in 0..h {
+            for x in 0..w {
+                let i = y * w + x;
+                let here = &surfaces[i];
+                if !here.is_surface() || !demodulable(i) {
+                    continue;
+                }
+                let (mut light, mut count) = (Vec3::ZERO, 0u32);
+                for dy in lo..=hi {
+                    let Some(ny) = y.checked_add_signed(dy).filter(|&v| v < h) else {
+                        continue;
+                    };
+                    for dx in lo..=hi {
+                        let Some(nx) = x.checked_add_signed(dx).filter(|&v| v < w) else {
+                            continue;
+                        };
+                        let j = ny * w + nx;
+                        if j == i || (self.same_surface(here, &surfaces[j]) && demodulable(j)) {
+                            light += radiance[j] / albedo[j];
+                            count += 1;
+                        }
+                    }
+                }
+                out[i] = albedo[i] * light / count as f32;
+            }
+        }
+        out
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn plane(depth: f32, shader: u32) -> SurfaceGuide {
+        SurfaceGuide {
+            depth,
+            normal: Vec3::Z,
+            shader,
+        }
+    }
+
+    /// An 8×8 image, left half a near plane, right half a far one with another shader;
+    /// light alternates per pixel (the interleaving pattern) around a different mean on
+    /// each side; albedo is a checkerboard texture.
+    fn two_planes() -> (Vec<Vec3>, Vec<Vec3>, Vec<SurfaceGuide>) {
+        let (mut radiance, mut albedo, mut surfaces) = (vec![], vec![], vec![]);
+        for y in 0..8 {
+            for x in 0..8 {
+                let texture = if (x + y) % 2 == 0 { 0.2 } else { 0.8 };
+                let (mean_light, surface) = if x < 4 {
+                    (1.0, plane(2.0, 0))
+                } else {
+                    (10.0, plane(20.0, 1))
+                };
+                let light = mean_light * if (x + 2 * y) % 4 < 2 { 0.5 } else { 1.5 };
+                radiance.push(Vec3::splat(texture * light));
+                albedo.push(Vec3::splat(texture));
+                surfaces.push(surface);
+            }
+        }
+        (radiance, albedo, surfaces)
+    }
+
+    #[test]
+    fn light_is_averaged_on_a_surface_and_never_across_an_edge() {
+        let (radiance, albedo, surfaces) = two_planes();
+        let filtered =
+            DiscontinuityFilter::for_pattern(4).apply(8, 8, &radiance, &albedo, &surfaces);
+        for y in 0..8 {
+            for x in 0..8 {
+                let i = y * 8 + x;
+                let light = filtered[i].x / albedo[i].x;
+                // Each side's light lies between its own extremes, whatever the window
+                // reaches across the edge at x = 4.
+                let (low, high) = if x < 4 { (0.5, 1.5) } else { (5.0, 15.0) };
+                assert!(
+                    (low..=high).contains(&light),
+                    "pixel ({x}, {y}): light {light} leaked across the edge"
+                );
+            }
+        }
+        // Inside each half, away from the image border, the window holds both phases of
+        // the pattern equally: the light is the half's mean.
+        for (x, mean) in [(2, 1.0), (6, 10.0)] {
+            let i = 4 * 8 + x;
+            let light = filtered[i].x / albedo[i].x;
+            assert!(
+                (light - mean).abs() < 1e-5,
+                "x = {x}: {light} instead of {mean}"
+            );
+        }
+        // The texture survives: vertical neighbours with full windows keep their albedo
+        // ratio (0.8 against 0.2).
+        assert!((filtered[5 * 8 + 2].x / filtered[4 * 8 + 2].x - 4.0).abs() < 1e-4);
+    }
+
+    #[test]
+    fn strength_fades_from_full_to_none_over_one_pattern_cycle() {
+        let filter = DiscontinuityFilter::for_pattern(4);
+        assert_eq!(filter.strength(1), 1.0);
+        assert!((filter.strength(6) - 2.0 / 3.0).abs() < 1e-6);
+        assert_eq!(filter.strength(16), 0.0);
+        assert_eq!(filter.strength(1000), 0.0);
+        let (radiance, albedo, surfaces) = two_planes();
+        let late = filter.apply_progressive(16, 8, 8, &radiance, &albedo, &surfaces);
+        assert_eq!(late, radiance);
+        let first = filter.apply_progressive(1, 8, 8, &radiance, &albedo, &surfaces);
+        assert_eq!(first, filter.apply(8, 8, &radiance, &albedo, &surfaces));
+    }
+
+    #[test]
+    fn sky_pixels_dark_albedo_and_window_one_are_left_alone() {
+        let (mut radiance, mut albedo, mut surfaces) = two_planes();
+        surfaces[9] = SurfaceGuide::NONE;
+        albedo[18] = Vec3::new(0.5, 0.0, 0.5);
+        radiance[18] = Vec3::new(0.3, 0.0, 0.4);
+        let filtered =
+            DiscontinuityFilter::for_pattern(4).apply(8, 8, &radiance, &albedo, &surfaces);
+        assert_eq!(filtered[9], radiance[9]);
+        assert_eq!(filtered[18], radiance[18]);
+        let unfiltered =
+            DiscontinuityFilter::for_pattern(1).apply(8, 8, &radiance, &albedo, &surfaces);
+        assert_eq!(unfiltered, radiance);
+    }
+}
