@@ -9,6 +9,7 @@
 use crate::render::SurfaceGuide;
 use bevy_ecs::component::Component;
 use glam::Vec3;
+use rayon::prelude::*;
 
 /// A camera's filtered image: per-pixel means of its film after [`DiscontinuityFilter`],
 /// for display and output (the film itself stays unfiltered).
@@ -109,8 +110,10 @@ impl DiscontinuityFilter {
         if n <= 1 {
             return out;
         }
-        for y in 0..h {
-            for x in 0..w {
+        // Rows in parallel on the current rayon pool; each pixel's result depends only on
+        // the inputs, so the image is the same for any thread count.
+        out.par_chunks_mut(w).enumerate().for_each(|(y, row)| {
+            for (x, pixel) in row.iter_mut().enumerate() {
                 let i = y * w + x;
                 let here = &surfaces[i];
                 if !here.is_surface() || !demodulable(i) {
@@ -132,9 +135,9 @@ impl DiscontinuityFilter {
                         }
                     }
                 }
-                out[i] = albedo[i] * light / count as f32;
+                *pixel = albedo[i] * light / count as f32;
             }
-        }
+        });
         out
     }
 }

@@ -404,22 +404,30 @@ pub fn accumulate(mut cameras: Query<(&FrameBuffer, &mut Film), Changed<FrameBuf
 /// compared by its surfaces. The film itself is left as accumulated.
 pub fn filter_display(
     mut commands: Commands,
+    pool: Res<RenderPool>,
     cameras: Query<(Entity, &Film, &FrameBuffer, &DiscontinuityFilter), Changed<Film>>,
 ) {
     let _span = tracing::info_span!("filter_display").entered();
     for (entity, film, frame, filter) in &cameras {
-        if frame.width != film.width() || frame.height != film.height() {
+        if frame.width != film.width()
+            || frame.height != film.height()
+            || filter.strength(film.frames()) == 0.0
+        {
+            // Nothing to show but the film itself.
+            commands.entity(entity).remove::<FilteredImage>();
             continue;
         }
         let means: Vec<glam::Vec3> = film.mean_rgb().into_iter().map(glam::Vec3::from).collect();
-        let pixels = filter.apply_progressive(
-            film.frames(),
-            film.width(),
-            film.height(),
-            &means,
-            &frame.mean_albedo(),
-            &frame.surfaces,
-        );
+        let pixels = pool.install(|| {
+            filter.apply_progressive(
+                film.frames(),
+                film.width(),
+                film.height(),
+                &means,
+                &frame.mean_albedo(),
+                &frame.surfaces,
+            )
+        });
         commands.entity(entity).insert(FilteredImage {
             pixels,
             frames: film.frames(),
