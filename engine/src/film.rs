@@ -129,17 +129,17 @@ impl FrameBuffer {
 
     /// Mean albedo per pixel (zero where no sample was accepted).
     pub fn mean_albedo(&self) -> Vec<Vec3> {
-        self.albedo_sums
-            .iter()
-            .zip(&self.counts)
-            .map(|(s, &c)| if c > 0 { *s / c as f32 } else { Vec3::ZERO })
-            .collect()
+        self.per_sample(&self.albedo_sums)
     }
 
     /// Mean radiance per pixel (zero where no sample was accepted).
     pub fn mean(&self) -> Vec<Vec3> {
-        self.sums
-            .iter()
+        self.per_sample(&self.sums)
+    }
+
+    /// Per-pixel `sums` divided by the accepted sample counts.
+    fn per_sample(&self, sums: &[Vec3]) -> Vec<Vec3> {
+        sums.iter()
             .zip(&self.counts)
             .map(|(s, &c)| if c > 0 { *s / c as f32 } else { Vec3::ZERO })
             .collect()
