@@ -27,18 +27,20 @@ pub struct DiscontinuityFilter {
     /// Window size N (the interleaving pattern's): every N×N window holds each of its
     /// pixel classes once. 1 leaves the image as it is.
     pub window: u32,
-    /// Largest relative depth difference of a neighbour on the same surface.
+    /// Largest distance of a neighbour on the same surface from the pixel's tangent
+    /// plane, relative to the pixel's distance from the camera.
     pub depth_tolerance: f32,
     /// Smallest cosine between the normals of a neighbour on the same surface.
     pub normal_cosine: f32,
 }
 
 impl DiscontinuityFilter {
-    /// The filter for interleaving with an N×N pattern: 5 % depth, 25° normals.
+    /// The filter for interleaving with an N×N pattern: 2 % of the depth off the tangent
+    /// plane, 25° between normals.
     pub fn for_pattern(window: u32) -> Self {
         Self {
             window: window.max(1),
-            depth_tolerance: 0.05,
+            depth_tolerance: 0.02,
             normal_cosine: 0.9,
         }
     }
@@ -76,12 +78,15 @@ impl DiscontinuityFilter {
             .collect()
     }
 
-    /// True when pixel surfaces `a` and `b` are the same surface for the filter.
+    /// True when pixel surfaces `a` and `b` are the same surface for the filter: same
+    /// shader, normals close, and `b` no farther from `a`'s tangent plane than the depth
+    /// tolerance. (Distances from the camera do not separate parallel surfaces seen at a
+    /// grazing angle: two floors 1 m apart, 20 m away, lie within 2 % of each other.)
     fn same_surface(&self, a: &SurfaceGuide, b: &SurfaceGuide) -> bool {
         a.shader == b.shader
             && b.is_surface()
-            && (a.depth - b.depth).abs() <= self.depth_tolerance * a.depth
             && a.normal.dot(b.normal) >= self.normal_cosine
+            && a.normal.dot(b.position - a.position).abs() <= self.depth_tolerance * a.depth
     }
 
     /// Filters a `width`×`height` image: `radiance` and `albedo` are per-pixel means,
@@ -146,9 +151,11 @@ impl DiscontinuityFilter {
 mod tests {
     use super::*;
 
-    fn plane(depth: f32, shader: u32) -> SurfaceGuide {
+    /// A point of the plane z = −depth facing a camera at the origin.
+    fn plane(x: f32, y: f32, depth: f32, shader: u32) -> SurfaceGuide {
         SurfaceGuide {
             depth,
+            position: Vec3::new(x, y, -depth),
             normal: Vec3::Z,
             shader,
         }
@@ -163,9 +170,9 @@ mod tests {
             for x in 0..8 {
                 let texture = if (x + y) % 2 == 0 { 0.2 } else { 0.8 };
                 let (mean_light, surface) = if x < 4 {
-                    (1.0, plane(2.0, 0))
+                    (1.0, plane(x as f32 * 0.01, y as f32 * 0.01, 2.0, 0))
                 } else {
-                    (10.0, plane(20.0, 1))
+                    (10.0, plane(x as f32 * 0.1, y as f32 * 0.1, 20.0, 1))
                 };
                 let light = mean_light * if (x + 2 * y) % 4 < 2 { 0.5 } else { 1.5 };
                 radiance.push(Vec3::splat(texture * light));
@@ -207,6 +214,31 @@ mod tests {
         // The texture survives: vertical neighbours with full windows keep their albedo
         // ratio (0.8 against 0.2).
         assert!((filtered[5 * 8 + 2].x / filtered[4 * 8 + 2].x - 4.0).abs() < 1e-4);
+    }
+
+    /// Two parallel floors 1 m apart seen at a grazing angle: their pixels lie within 2 %
+    /// of each other's distance from the camera, so only the distance from the tangent
+    /// plane tells them apart (a test on camera distance let the light through).
+    #[test]
+    fn parallel_surfaces_at_a_grazing_angle_stay_apart() {
+        let floor = |y: f32, z: f32| SurfaceGuide {
+            depth: Vec3::new(0.0, y, z).length(),
+            position: Vec3::new(0.0, y, z),
+            normal: Vec3::Y,
+            shader: 0,
+        };
+        let surfaces = [
+            floor(-1.0, -20.0),
+            floor(-1.0, -20.1),
+            floor(-2.0, -20.3),
+            floor(-2.0, -20.4),
+        ];
+        assert!((surfaces[2].depth - surfaces[1].depth).abs() < 0.02 * surfaces[1].depth);
+        let albedo = [Vec3::splat(0.5); 4];
+        let radiance = [0.5, 0.5, 5.0, 5.0].map(Vec3::splat);
+        let filtered =
+            DiscontinuityFilter::for_pattern(4).apply(4, 1, &radiance, &albedo, &surfaces);
+        assert_eq!(filtered, radiance);
     }
 
     #[test]

@@ -140,6 +140,8 @@ pub struct ShadedSample {
 pub struct SurfaceGuide {
     /// Distance from the camera (infinite: no surface).
     pub depth: f32,
+    /// The hit point (world space, as rendered).
+    pub position: Vec3,
     /// Geometric normal facing the camera.
     pub normal: Vec3,
     /// Shader id.
@@ -150,6 +152,7 @@ impl SurfaceGuide {
     /// No surface: the ray left the scene.
     pub const NONE: SurfaceGuide = SurfaceGuide {
         depth: f32::INFINITY,
+        position: Vec3::ZERO,
         normal: Vec3::ZERO,
         shader: u32::MAX,
     };
@@ -540,6 +543,7 @@ impl<'a> RenderScene<'a> {
             albedo,
             surface: SurfaceGuide {
                 depth: hit.t * ray.direction.length(),
+                position: surface.point.point.into(),
                 normal: ng.into(),
                 shader: surface.shader,
             },

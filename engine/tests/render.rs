@@ -235,3 +235,129 @@ fn injected_nan_samples_are_counted_and_never_reach_the_film() {
     assert!(film.mean_rgb().iter().flatten().all(|v| v.is_finite()));
     assert!(film.to_srgba8(0.0).len() == 64 * 48 * 4);
 }
+
+/// The discontinuity filter on a rendered edge: a textured plane 8 m above a ground with
+/// the same texture and shader, the sun low enough that the raised plane shadows all the
+/// ground in view (no sky: every pixel is exact). Depth alone tells the two apart,
+/// and no light may cross: shadowed ground stays black, lit pixels keep their value.
+#[test]
+fn the_discontinuity_filter_keeps_light_on_its_side_of_a_depth_edge() {
+    use sylva_engine::discontinuity::DiscontinuityFilter;
+    let mut library = GeometryLibrary::default();
+    let square = TriangleMesh {
+        positions: vec![
+            Vec3::new(-1.0, 0.0, -1.0),
+            Vec3::new(1.0, 0.0, -1.0),
+            Vec3::new(1.0, 0.0, 1.0),
+            Vec3::new(-1.0, 0.0, 1.0),
+        ],
+        normals: vec![],
+        uvs: vec![
+            Vec2::ZERO,
+            Vec2::new(8.0, 0.0),
+            Vec2::new(8.0, 8.0),
+            Vec2::new(0.0, 8.0),
+        ],
+        indices: vec![[0, 2, 1], [0, 3, 2]],
+        shaders: vec![0, 0],
+    };
+    let square = library.add(Geometry::new("square", square, BuildParams::BALANCED).unwrap());
+    let descs = [
+        Affine3A::from_scale(Vec3::new(30.0, 1.0, 30.0)),
+        Affine3A::from_scale_rotation_translation(
+            Vec3::new(15.0, 1.0, 30.0),
+            Quat::IDENTITY,
+            Vec3::new(-15.0, 8.0, 0.0),
+        ),
+    ]
+    .map(|transform| InstanceDesc {
+        transform,
+        geometry: square,
+    });
+    let top_level = TopLevel::build(&library, &descs, BuildParams::BALANCED);
+    let checker: Vec<[u8; 4]> = (0..64)
+        .map(|i| {
+            if (i % 8 + i / 8) % 2 == 0 {
+                [200, 200, 200, 255]
+            } else {
+                [40, 90, 40, 255]
+            }
+        })
+        .collect();
+    let shaders = ShaderTable::new(vec![Shader::textured(
+        ShaderId(0),
+        Vec3::ONE,
+        Arc::new(Texture::from_srgba8(8, 8, checker).unwrap()),
+    )]);
+    let lights = LightSet {
+        // From −x: the plane (x < 0, 8 m up) shadows the ground out to x = 10.7 m.
+        directional: vec![DirectionalLight {
+            direction: Vec3::new(-0.8, 0.6, 0.0),
+            irradiance: Vec3::splat(3.0),
+        }],
+        sky: None,
+        environment: None,
+    };
+    let scene = RenderScene {
+        geometry: &library,
+        top_level: &top_level,
+        shaders: &shaders,
+        lights: &lights,
+    };
+    let camera = Camera {
+        width: 48,
+        height: 48,
+        vertical_fov: 0.6,
+        ..Default::default()
+    };
+    let view = view_from(&camera, Vec3::new(0.0, 20.0, 6.0));
+    let frame = render_frame(
+        &scene,
+        &view,
+        &RenderParams::for_camera(&camera, 3),
+        0,
+        &|_| {},
+    );
+    let raw = frame.mean();
+    let albedo = frame.mean_albedo();
+    let filter = |depth_tolerance: f32| {
+        DiscontinuityFilter {
+            depth_tolerance,
+            ..DiscontinuityFilter::for_pattern(4)
+        }
+        .apply(48, 48, &raw, &albedo, &frame.surfaces)
+    };
+    let filtered = filter(0.05);
+    let (mut dark, mut lit, mut dark_beside_lit) = (0, 0, 0);
+    for y in 0..48usize {
+        for x in 0..48usize {
+            let i = y * 48 + x;
+            if raw[i] == Vec3::ZERO {
+                dark += 1;
+                assert_eq!(filtered[i], Vec3::ZERO, "light leaked into ({x}, {y})");
+                let beside_lit = (x.saturating_sub(2)..(x + 2).min(47))
+                    .any(|nx| raw[y * 48 + nx].max_element() > 0.1);
+                dark_beside_lit += beside_lit as u32;
+            } else {
+                lit += 1;
+                let relative = (filtered[i] - raw[i]).abs().max_element() / raw[i].max_element();
+                assert!(
+                    relative < 1e-4,
+                    "({x}, {y}): {} against {}",
+                    filtered[i],
+                    raw[i]
+                );
+            }
+        }
+    }
+    assert!(
+        dark > 100 && lit > 100 && dark_beside_lit > 20,
+        "{dark} {lit} {dark_beside_lit}"
+    );
+    // The test can fail: a filter blind to depth does carry light into the shadow.
+    let blind = filter(10.0);
+    assert!(
+        (0..48 * 48).any(|i| raw[i] == Vec3::ZERO && blind[i] != Vec3::ZERO),
+        "the scene does not put lit and shadowed pixels of one shader side by side"
+    );
+}
