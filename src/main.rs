@@ -134,8 +134,8 @@ struct SceneArgs {
 /// Quality presets of `--preset`.
 #[derive(clap::ValueEnum, Clone, Copy, Debug, PartialEq, Eq)]
 enum Preset {
-    /// 1 camera sample and 1 light sample per hit, adaptive transparency on: fast frames
-    /// to refine progressively.
+    /// 1 camera sample and 1 light sample per hit, adaptive transparency and the
+    /// discontinuity filter on: fast frames to refine progressively.
     Interactive,
     /// 4 camera samples and 4 light samples per hit, exact transparency.
     Still,
@@ -195,8 +195,8 @@ struct RenderArgs {
     #[arg(long, default_value_t = 480, allow_negative_numbers = true, value_parser = clap::value_parser!(u32).range(1..=16384))]
     height: u32,
     /// Quality preset: interactive (1 camera sample, 1 light sample per hit, adaptive
-    /// transparency) or still (4 and 4, exact). --spp, --light-samples and
-    /// --adaptive-transparency override it.
+    /// transparency, discontinuity filter) or still (4 and 4, exact, unfiltered). --spp,
+    /// --light-samples, --adaptive-transparency and --filter override it.
     #[arg(long, value_enum)]
     preset: Option<Preset>,
     /// Treat alpha holes beyond a distance-dependent allowance as opaque (shaded with the
