@@ -33,15 +33,14 @@ impl Fixture {
     }
 }
 
-fn fixture() -> Fixture {
-    let mut rng = TestRng::new(4);
-    let mut library = GeometryLibrary::default();
-    let ground = TriangleMesh {
+/// A square of side 2·`half` at y = 0 facing +Y, its texture repeated 8 times (shader 0).
+fn textured_square(half: f32) -> TriangleMesh {
+    TriangleMesh {
         positions: vec![
-            Vec3::new(-30.0, 0.0, -30.0),
-            Vec3::new(30.0, 0.0, -30.0),
-            Vec3::new(30.0, 0.0, 30.0),
-            Vec3::new(-30.0, 0.0, 30.0),
+            Vec3::new(-half, 0.0, -half),
+            Vec3::new(half, 0.0, -half),
+            Vec3::new(half, 0.0, half),
+            Vec3::new(-half, 0.0, half),
         ],
         normals: vec![],
         uvs: vec![
@@ -52,8 +51,32 @@ fn fixture() -> Fixture {
         ],
         indices: vec![[0, 2, 1], [0, 3, 2]],
         shaders: vec![0, 0],
-    };
-    let ground = library.add(Geometry::new("ground", ground, BuildParams::BALANCED).unwrap());
+    }
+}
+
+/// Shader 0: a white material under an 8×8 grey and green checker texture.
+fn checker_shader() -> Shader {
+    let checker: Vec<[u8; 4]> = (0..64)
+        .map(|i| {
+            if (i % 8 + i / 8) % 2 == 0 {
+                [200, 200, 200, 255]
+            } else {
+                [40, 90, 40, 255]
+            }
+        })
+        .collect();
+    Shader::textured(
+        ShaderId(0),
+        Vec3::ONE,
+        Arc::new(Texture::from_srgba8(8, 8, checker).unwrap()),
+    )
+}
+
+fn fixture() -> Fixture {
+    let mut rng = TestRng::new(4);
+    let mut library = GeometryLibrary::default();
+    let ground =
+        library.add(Geometry::new("ground", textured_square(30.0), BuildParams::BALANCED).unwrap());
     let mut soup = random_mesh(&mut rng, 300, 1.0, 0.4);
     soup.shaders = (0..300).map(|i| 1 + i % 2).collect();
     let soup = library.add(Geometry::new("soup", soup, BuildParams::BALANCED).unwrap());
@@ -73,21 +96,8 @@ fn fixture() -> Fixture {
         });
     }
     let top_level = TopLevel::build(&library, &descs, BuildParams::BALANCED);
-    let checker: Vec<[u8; 4]> = (0..64)
-        .map(|i| {
-            if (i % 8 + i / 8) % 2 == 0 {
-                [200, 200, 200, 255]
-            } else {
-                [40, 90, 40, 255]
-            }
-        })
-        .collect();
     let shaders = ShaderTable::new(vec![
-        Shader::textured(
-            ShaderId(0),
-            Vec3::ONE,
-            Arc::new(Texture::from_srgba8(8, 8, checker).unwrap()),
-        ),
+        checker_shader(),
         Shader::color(ShaderId(1), Vec3::new(0.2, 0.5, 0.1)),
         Shader::color(ShaderId(2), Vec3::new(0.5, 0.3, 0.1)),
     ]);
@@ -244,24 +254,8 @@ fn injected_nan_samples_are_counted_and_never_reach_the_film() {
 fn the_discontinuity_filter_keeps_light_on_its_side_of_a_depth_edge() {
     use sylva_engine::discontinuity::DiscontinuityFilter;
     let mut library = GeometryLibrary::default();
-    let square = TriangleMesh {
-        positions: vec![
-            Vec3::new(-1.0, 0.0, -1.0),
-            Vec3::new(1.0, 0.0, -1.0),
-            Vec3::new(1.0, 0.0, 1.0),
-            Vec3::new(-1.0, 0.0, 1.0),
-        ],
-        normals: vec![],
-        uvs: vec![
-            Vec2::ZERO,
-            Vec2::new(8.0, 0.0),
-            Vec2::new(8.0, 8.0),
-            Vec2::new(0.0, 8.0),
-        ],
-        indices: vec![[0, 2, 1], [0, 3, 2]],
-        shaders: vec![0, 0],
-    };
-    let square = library.add(Geometry::new("square", square, BuildParams::BALANCED).unwrap());
+    let square =
+        library.add(Geometry::new("square", textured_square(1.0), BuildParams::BALANCED).unwrap());
     let descs = [
         Affine3A::from_scale(Vec3::new(30.0, 1.0, 30.0)),
         Affine3A::from_scale_rotation_translation(
@@ -275,20 +269,7 @@ fn the_discontinuity_filter_keeps_light_on_its_side_of_a_depth_edge() {
         geometry: square,
     });
     let top_level = TopLevel::build(&library, &descs, BuildParams::BALANCED);
-    let checker: Vec<[u8; 4]> = (0..64)
-        .map(|i| {
-            if (i % 8 + i / 8) % 2 == 0 {
-                [200, 200, 200, 255]
-            } else {
-                [40, 90, 40, 255]
-            }
-        })
-        .collect();
-    let shaders = ShaderTable::new(vec![Shader::textured(
-        ShaderId(0),
-        Vec3::ONE,
-        Arc::new(Texture::from_srgba8(8, 8, checker).unwrap()),
-    )]);
+    let shaders = ShaderTable::new(vec![checker_shader()]);
     let lights = LightSet {
         // From −x: the plane (x < 0, 8 m up) shadows the ground out to x = 10.7 m.
         directional: vec![DirectionalLight {
