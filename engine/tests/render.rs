@@ -169,39 +169,62 @@ fn tile_order_and_thread_count_do_not_change_a_bit() {
     assert_ne!(other.sums, frames[0].sums);
 }
 
+/// One frame of a scene lit by `sun` alone (no sky: no noise), seen from `eye` towards
+/// the origin by a square camera of (`size` pixels, vertical field of view), seed `seed`.
+fn render_in_sunlight(
+    library: &GeometryLibrary,
+    top_level: &TopLevel,
+    shaders: &ShaderTable,
+    sun: DirectionalLight,
+    (size, vertical_fov): (u32, f32),
+    eye: Vec3,
+    seed: u64,
+) -> FrameBuffer {
+    let lights = LightSet {
+        directional: vec![sun],
+        sky: None,
+        environment: None,
+    };
+    let scene = RenderScene {
+        geometry: library,
+        top_level,
+        shaders,
+        lights: &lights,
+    };
+    let camera = Camera {
+        width: size,
+        height: size,
+        vertical_fov,
+        ..Default::default()
+    };
+    let view = view_from(&camera, eye);
+    render_frame(
+        &scene,
+        &view,
+        &RenderParams::for_camera(&camera, seed),
+        0,
+        &|_| {},
+    )
+}
+
 #[test]
 fn lambertian_plane_under_sun_matches_the_analytic_radiance() {
     // A white-ish plane lit by a sun only: L = albedo/π · E · cos θ exactly (no noise).
     let (library, top_level) = ground_plane();
     let shaders = ShaderTable::new(vec![Shader::color(ShaderId(0), Vec3::new(0.8, 0.5, 0.2))]);
     let sun = Vec3::new(0.3, 0.7, -0.2).normalize();
-    let lights = LightSet {
-        directional: vec![DirectionalLight {
-            direction: sun,
-            irradiance: Vec3::new(2.0, 3.0, 4.0),
-        }],
-        sky: None,
-        environment: None,
+    let sun_light = DirectionalLight {
+        direction: sun,
+        irradiance: Vec3::new(2.0, 3.0, 4.0),
     };
-    let scene = RenderScene {
-        geometry: &library,
-        top_level: &top_level,
-        shaders: &shaders,
-        lights: &lights,
-    };
-    let camera = Camera {
-        width: 16,
-        height: 16,
-        vertical_fov: 0.5,
-        ..Default::default()
-    };
-    let view = view_from(&camera, Vec3::new(0.0, 5.0, 5.0));
-    let frame = render_frame(
-        &scene,
-        &view,
-        &RenderParams::for_camera(&camera, 1),
-        0,
-        &|_| {},
+    let frame = render_in_sunlight(
+        &library,
+        &top_level,
+        &shaders,
+        sun_light,
+        (16, 0.5),
+        Vec3::new(0.0, 5.0, 5.0),
+        1,
     );
     let expected =
         Vec3::new(0.8, 0.5, 0.2) * Vec3::new(2.0, 3.0, 4.0) * sun.y / std::f32::consts::PI;
@@ -270,34 +293,19 @@ fn the_discontinuity_filter_keeps_light_on_its_side_of_a_depth_edge() {
     });
     let top_level = TopLevel::build(&library, &descs, BuildParams::BALANCED);
     let shaders = ShaderTable::new(vec![checker_shader()]);
-    let lights = LightSet {
-        // From −x: the plane (x < 0, 8 m up) shadows the ground out to x = 10.7 m.
-        directional: vec![DirectionalLight {
-            direction: Vec3::new(-0.8, 0.6, 0.0),
-            irradiance: Vec3::splat(3.0),
-        }],
-        sky: None,
-        environment: None,
+    // From −x: the plane (x < 0, 8 m up) shadows the ground out to x = 10.7 m.
+    let sun_light = DirectionalLight {
+        direction: Vec3::new(-0.8, 0.6, 0.0),
+        irradiance: Vec3::splat(3.0),
     };
-    let scene = RenderScene {
-        geometry: &library,
-        top_level: &top_level,
-        shaders: &shaders,
-        lights: &lights,
-    };
-    let camera = Camera {
-        width: 48,
-        height: 48,
-        vertical_fov: 0.6,
-        ..Default::default()
-    };
-    let view = view_from(&camera, Vec3::new(0.0, 20.0, 6.0));
-    let frame = render_frame(
-        &scene,
-        &view,
-        &RenderParams::for_camera(&camera, 3),
-        0,
-        &|_| {},
+    let frame = render_in_sunlight(
+        &library,
+        &top_level,
+        &shaders,
+        sun_light,
+        (48, 0.6),
+        Vec3::new(0.0, 20.0, 6.0),
+        3,
     );
     let raw = frame.mean();
     let albedo = frame.mean_albedo();
