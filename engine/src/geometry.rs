@@ -89,17 +89,19 @@ impl Geometry {
     ) -> Option<GeometryHit> {
         let wray = WatertightRay::new(ray);
         let mut best = None;
-        self.bvh
-            .traverse_closest_with(kernel, ray, stats, |slot, t_max| {
-                let [p0, p1, p2] = self.corners[slot];
-                let hit = wray.intersect(p0, p1, p2, t_max)?;
-                let triangle = self.bvh.prim_indices[slot];
-                if !accept(triangle, &hit) {
-                    return None;
+        kernel.traverse(&self.bvh, ray, stats, |first, count, mut t_max| {
+            self.for_possible_hits(&wray, first, count, |slot, [p0, p1, p2]| {
+                if let Some(hit) = wray.intersect_exact(p0, p1, p2, t_max) {
+                    let triangle = self.bvh.prim_indices[slot];
+                    if accept(triangle, &hit) {
+                        best = Some(GeometryHit { triangle, hit });
+                        t_max = hit.t;
+                    }
                 }
-                best = Some(GeometryHit { triangle, hit });
-                Some(hit.t)
+                false
             });
+            (t_max, false)
+        });
         best
     }
 
@@ -124,14 +126,39 @@ impl Geometry {
         mut accept: impl FnMut(u32, &TriangleHit) -> bool,
     ) -> bool {
         let wray = WatertightRay::new(ray);
-        self.bvh
-            .traverse_any_with(kernel, ray, stats, |slot, t_max| {
-                let [p0, p1, p2] = self.corners[slot];
-                match wray.intersect(p0, p1, p2, t_max) {
-                    Some(hit) => accept(self.bvh.prim_indices[slot], &hit),
-                    None => false,
+        let mut found = false;
+        kernel.traverse(&self.bvh, ray, stats, |first, count, t_max| {
+            found = self.for_possible_hits(&wray, first, count, |slot, [p0, p1, p2]| {
+                wray.intersect_exact(p0, p1, p2, t_max)
+                    .is_some_and(|hit| accept(self.bvh.prim_indices[slot], &hit))
+            });
+            (t_max, found)
+        });
+        found
+    }
+
+    /// Calls `test(slot, corners)` in slot order for the triangles of leaf slots
+    /// `first .. first + count` that the ray may hit (the f32 pass, four at a time, has
+    /// ruled out the rest) until it returns true; returns whether it did.
+    #[inline(always)]
+    fn for_possible_hits(
+        &self,
+        wray: &WatertightRay,
+        first: usize,
+        count: usize,
+        mut test: impl FnMut(usize, [Vec3A; 3]) -> bool,
+    ) -> bool {
+        for (chunk, triangles) in self.corners[first..first + count].chunks(4).enumerate() {
+            let mut possible = wray.possible_hits(triangles);
+            while possible != 0 {
+                let lane = possible.trailing_zeros() as usize;
+                possible &= possible - 1;
+                if test(first + 4 * chunk + lane, triangles[lane]) {
+                    return true;
                 }
-            })
+            }
+        }
+        false
     }
 
     /// Heap bytes held (mesh, BVH, corner copy).

@@ -3,7 +3,7 @@
 //! bound of the reconstructed hit point.
 
 use crate::math::{ErrorPoint, Ray, gamma};
-use glam::Vec3A;
+use glam::{Mat4, Vec3A, Vec4};
 
 /// A ray prepared for the watertight test: axis permutation and shear constants.
 #[derive(Clone, Copy, Debug)]
@@ -111,9 +111,64 @@ impl WatertightRay {
         e.cmplt(Vec3A::splat(-bound)).any() && e.cmpgt(Vec3A::splat(bound)).any()
     }
 
+    /// Up to four triangles at once through [`misses_certainly`](Self::misses_certainly),
+    /// one triangle per SIMD lane: bit `i` is set when triangle `i` may be hit and needs
+    /// [`intersect_exact`](Self::intersect_exact). Every lane runs the scalar pass's
+    /// operations in the same order, so the two decide alike, bit for bit.
+    #[inline]
+    pub fn possible_hits(&self, triangles: &[[Vec3A; 3]]) -> u32 {
+        debug_assert!((1..=4).contains(&triangles.len()));
+        let lane = |i: usize| triangles[i.min(triangles.len() - 1)];
+        let (t0, t1, t2, t3) = (lane(0), lane(1), lane(2), lane(3));
+        // Per corner, x, y and z of the four triangles, relative to the origin.
+        let relative = |corner: usize| {
+            let m = Mat4::from_cols(
+                t0[corner].extend(0.0),
+                t1[corner].extend(0.0),
+                t2[corner].extend(0.0),
+                t3[corner].extend(0.0),
+            )
+            .transpose();
+            [
+                m.x_axis - Vec4::splat(self.origin.x),
+                m.y_axis - Vec4::splat(self.origin.y),
+                m.z_axis - Vec4::splat(self.origin.z),
+            ]
+        };
+        let (a, b, c) = (relative(0), relative(1), relative(2));
+        let (sx, sy) = (Vec4::splat(self.shear.x), Vec4::splat(self.shear.y));
+        let (kx, ky, kz) = (self.kx, self.ky, self.kz);
+        let sheared = |v: &[Vec4; 3]| (v[kx] - sx * v[kz], v[ky] - sy * v[kz]);
+        let ((ax, ay), (bx, by), (cx, cy)) = (sheared(&a), sheared(&b), sheared(&c));
+        let e0 = bx * cy - by * cx;
+        let e1 = cx * ay - cy * ax;
+        let e2 = ax * by - ay * bx;
+        let magnitude = |k: usize, s: Vec4| {
+            let m = |v: &[Vec4; 3]| v[k].abs() + (s * v[kz]).abs();
+            m(&a).max(m(&b)).max(m(&c))
+        };
+        let bound = Vec4::splat(32.0 * f32::EPSILON * 0.5) * magnitude(kx, sx) * magnitude(ky, sy);
+        let reliable = bound.is_finite_mask()
+            & bound.cmpge(Vec4::splat(MIN_RELIABLE_BOUND))
+            & e0.is_finite_mask()
+            & e1.is_finite_mask()
+            & e2.is_finite_mask();
+        let (low, high) = (-bound, bound);
+        let below = e0.cmplt(low) | e1.cmplt(low) | e2.cmplt(low);
+        let above = e0.cmpgt(high) | e1.cmpgt(high) | e2.cmpgt(high);
+        let certain_miss = (reliable & below & above).bitmask();
+        !certain_miss & ((1 << triangles.len()) - 1)
+    }
+
     /// The watertight test itself, in f64 after the f32 ray set-up.
     #[inline]
-    fn intersect_exact(&self, p0: Vec3A, p1: Vec3A, p2: Vec3A, t_max: f32) -> Option<TriangleHit> {
+    pub fn intersect_exact(
+        &self,
+        p0: Vec3A,
+        p1: Vec3A,
+        p2: Vec3A,
+        t_max: f32,
+    ) -> Option<TriangleHit> {
         let (kx, ky, kz) = (self.kx, self.ky, self.kz);
         let origin = self.origin.as_dvec3();
         let (a, b, c) = (
@@ -328,6 +383,66 @@ mod tests {
         assert!(
             rejected as f32 > 0.95 * misses as f32,
             "{rejected} of {misses} misses decided in f32"
+        );
+    }
+
+    #[test]
+    fn the_four_lane_pass_decides_as_the_scalar_pass() {
+        let mut state = 0x51ed_2701_aa3c_9e4du64;
+        let point = |state: &mut u64, scale: f32| {
+            Vec3A::new(
+                (uniform(state) - 0.5) * scale,
+                (uniform(state) - 0.5) * scale,
+                (uniform(state) - 0.5) * scale,
+            )
+        };
+        let (mut possible, mut lanes) = (0u32, 0u32);
+        for i in 0..50_000 {
+            let scale = 10f32.powi(i % 7 - 3);
+            let offset = if i % 3 == 0 {
+                Vec3A::splat(1.5e5)
+            } else {
+                Vec3A::ZERO
+            };
+            let count = 1 + i as usize % 4;
+            let mut triangles = Vec::new();
+            for _ in 0..count {
+                let mut corners = [0; 3].map(|_| point(&mut state, scale) + offset);
+                if i % 11 == 0 {
+                    // A degenerate triangle: one corner repeated.
+                    corners[2] = corners[0];
+                }
+                triangles.push(corners);
+            }
+            // Aim near the first triangle, so some lanes are hit and some are not.
+            let target = triangles[0][0] * 0.4 + triangles[0][1] * 0.3 + triangles[0][2] * 0.3;
+            let origin = point(&mut state, 4.0 * scale) + offset;
+            let mut direction = target - origin + point(&mut state, scale * 0.5);
+            if i % 13 == 0 {
+                direction.y = 0.0;
+            }
+            let ray = Ray::new(origin, direction);
+            if !ray.direction.is_finite() || ray.direction == Vec3A::ZERO {
+                continue;
+            }
+            let watertight = WatertightRay::new(&ray);
+            let mask = watertight.possible_hits(&triangles);
+            for (lane, [p0, p1, p2]) in triangles.iter().enumerate() {
+                let scalar = !watertight.misses_certainly(*p0, *p1, *p2);
+                assert_eq!(
+                    mask >> lane & 1 == 1,
+                    scalar,
+                    "lane {lane} of {triangles:?}, {ray:?}"
+                );
+                possible += u32::from(scalar);
+                lanes += 1;
+            }
+            assert_eq!(mask >> count, 0, "lanes past the triangles are set");
+        }
+        // Both outcomes must occur often enough for the comparison to mean something.
+        assert!(
+            possible > lanes / 20 && possible < lanes * 19 / 20,
+            "{possible} of {lanes}"
         );
     }
 

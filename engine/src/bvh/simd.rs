@@ -35,12 +35,13 @@ pub(crate) use with_node_kernel;
 pub trait NodeKernel: Copy {
     /// [`Bvh::traverse_with`] on this kernel: with AVX2, one function compiled for it,
     /// so the box tests inline into the loop (and the caller's primitive tests with it).
+    /// `visit(first, count, t_max) -> (new t_max, stop)` tests one leaf's slots.
     fn traverse(
         self,
         bvh: &Bvh,
         ray: &Ray,
         stats: &mut TraversalStats,
-        visit: impl FnMut(usize, f32) -> (f32, bool),
+        visit: impl FnMut(usize, usize, f32) -> (f32, bool),
     );
 
     /// Entry distances of the children and a bitmask of the lanes whose box the ray
@@ -59,7 +60,7 @@ impl NodeKernel for Portable {
         bvh: &Bvh,
         ray: &Ray,
         stats: &mut TraversalStats,
-        visit: impl FnMut(usize, f32) -> (f32, bool),
+        visit: impl FnMut(usize, usize, f32) -> (f32, bool),
     ) {
         bvh.traverse_with(self, ray, stats, visit)
     }
@@ -185,7 +186,7 @@ mod avx2 {
         bvh: &Bvh,
         ray: &Ray,
         stats: &mut TraversalStats,
-        visit: impl FnMut(usize, f32) -> (f32, bool),
+        visit: impl FnMut(usize, usize, f32) -> (f32, bool),
     ) {
         bvh.traverse_with(Avx2 { _detected: () }, ray, stats, visit)
     }
@@ -197,7 +198,7 @@ mod avx2 {
             bvh: &Bvh,
             ray: &Ray,
             stats: &mut TraversalStats,
-            visit: impl FnMut(usize, f32) -> (f32, bool),
+            visit: impl FnMut(usize, usize, f32) -> (f32, bool),
         ) {
             // SAFETY: `self` exists only when `detect` found AVX2 on this CPU.
             unsafe { traverse(bvh, ray, stats, visit) }

@@ -189,9 +189,11 @@ impl Bvh {
         mut test: impl FnMut(usize, f32) -> Option<f32>,
     ) -> f32 {
         let mut t_max = ray.t_max;
-        kernel.traverse(self, ray, stats, |slot, t| {
-            if let Some(hit_t) = test(slot, t) {
-                t_max = hit_t;
+        kernel.traverse(self, ray, stats, |first, count, _| {
+            for slot in first..first + count {
+                if let Some(hit_t) = test(slot, t_max) {
+                    t_max = hit_t;
+                }
             }
             (t_max, false)
         });
@@ -219,8 +221,8 @@ impl Bvh {
         mut test: impl FnMut(usize, f32) -> bool,
     ) -> bool {
         let mut found = false;
-        kernel.traverse(self, ray, stats, |slot, t| {
-            found = test(slot, t);
+        kernel.traverse(self, ray, stats, |first, count, t| {
+            found = (first..first + count).any(|slot| test(slot, t));
             (t, found)
         });
         found
@@ -237,15 +239,16 @@ impl Bvh {
         }
     }
 
-    /// The shared loop over the wide tree: `visit(slot, t_max) -> (new t_max, stop)`,
-    /// with the box tests of `kernel`.
+    /// The shared loop over the wide tree: `visit(first, count, t_max) -> (new t_max,
+    /// stop)` for each leaf the ray reaches (slots `first .. first + count`), with the
+    /// box tests of `kernel`.
     #[inline(always)]
     pub(super) fn traverse_with(
         &self,
         kernel: impl NodeKernel,
         ray: &Ray,
         stats: &mut TraversalStats,
-        mut visit: impl FnMut(usize, f32) -> (f32, bool),
+        mut visit: impl FnMut(usize, usize, f32) -> (f32, bool),
     ) {
         if self.wide.is_empty() {
             return;
@@ -263,14 +266,11 @@ impl Bvh {
         let mut stack = Stack::new();
         loop {
             if current.count > 0 {
-                let first = current.first as usize;
-                for slot in first..first + current.count as usize {
-                    stats.primitive_tests += 1;
-                    let (t, stop) = visit(slot, t_max);
-                    t_max = t;
-                    if stop {
-                        return;
-                    }
+                stats.primitive_tests += u64::from(current.count);
+                let (t, stop) = visit(current.first as usize, current.count as usize, t_max);
+                t_max = t;
+                if stop {
+                    return;
                 }
             } else {
                 let node = &self.wide[current.first as usize];
