@@ -1,6 +1,6 @@
 //! Stack-based, near-child-first traversal with two entry points: closest hit and any
-//! hit. The caller's closure tests one primitive slot, so alpha masks and instance
-//! transforms live outside the BVH.
+//! hit. The caller's closure tests a leaf's primitive slots (or one slot, through the
+//! slot-wise entry points), so alpha masks and instance transforms live outside the BVH.
 
 use super::simd::{NodeKernel, prefetch_node, with_node_kernel};
 use super::{Bvh, WIDTH, WideNode};
