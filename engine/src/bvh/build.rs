@@ -360,27 +360,21 @@ impl Builder {
             };
         let (left, right) = refs.split_at_mut(mid);
         let right_offset = prim_offset + mid as u32;
-        let bounds = extent.bounds;
+        // The two children's slots, with their boxes; what they hold is filled in below.
+        let pair = work.nodes.len();
+        work.nodes[at] = BvhNode::interior(extent.bounds, pair as u32);
+        work.nodes
+            .push(BvhNode::leaf(left_extent.bounds, prim_offset, 0));
+        work.nodes
+            .push(BvhNode::leaf(right_extent.bounds, right_offset, 0));
         if n >= self.params.parallel_threshold {
             let (ln, rn) = rayon::join(
                 || self.build_subtree(left, prim_offset, left_extent, depth + 1),
                 || self.build_subtree(right, right_offset, right_extent, depth + 1),
             );
-            let pair = work.nodes.len();
-            work.nodes[at] = BvhNode::interior(bounds, pair as u32);
-            work.nodes
-                .push(BvhNode::leaf(left_extent.bounds, prim_offset, 0));
-            work.nodes
-                .push(BvhNode::leaf(right_extent.bounds, right_offset, 0));
             work.attached.push((pair, ln));
             work.attached.push((pair + 1, rn));
         } else {
-            let pair = work.nodes.len();
-            work.nodes[at] = BvhNode::interior(bounds, pair as u32);
-            work.nodes
-                .push(BvhNode::leaf(left_extent.bounds, prim_offset, 0));
-            work.nodes
-                .push(BvhNode::leaf(right_extent.bounds, right_offset, 0));
             self.build_node(left, prim_offset, left_extent, depth + 1, work, pair);
             self.build_node(right, right_offset, right_extent, depth + 1, work, pair + 1);
         }
