@@ -17,7 +17,9 @@ pub struct TraversalStats {
     pub any_rays: u64,
     /// BVH nodes visited, both levels.
     pub nodes_visited: u64,
-    /// Primitive tests: instances at the top level, triangles at the bottom.
+    /// Primitive tests: instances at the top level, triangles at the bottom. Every slot
+    /// of a visited leaf counts (a leaf's triangles are tested together), also when an
+    /// any-hit ray stops inside it.
     pub primitive_tests: u64,
     /// Candidate hits handed to a hit filter (alpha tests).
     pub filter_tests: u64,
