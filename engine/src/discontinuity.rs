@@ -11,6 +11,22 @@ use bevy_ecs::component::Component;
 use glam::Vec3;
 use rayon::prelude::*;
 
+/// What the filter reads: a `width`×`height` image's per-pixel radiance and albedo
+/// means and the surface each pixel saw, row-major.
+#[derive(Clone, Copy, Debug)]
+pub struct GuidedImage<'a> {
+    /// Pixels per row.
+    pub width: u32,
+    /// Rows.
+    pub height: u32,
+    /// Mean radiance per pixel.
+    pub radiance: &'a [Vec3],
+    /// Mean albedo per pixel (what the radiance was modulated by).
+    pub albedo: &'a [Vec3],
+    /// The surface each pixel saw first.
+    pub surfaces: &'a [SurfaceGuide],
+}
+
 /// A camera's filtered image: per-pixel means of its film after [`DiscontinuityFilter`],
 /// for display and output (the film itself stays unfiltered).
 #[derive(Component, Clone, Debug, PartialEq)]
@@ -57,23 +73,15 @@ impl DiscontinuityFilter {
 
     /// [`apply`](Self::apply) at the [`strength`](Self::strength) for a film of `frames`
     /// frames: a blend of the filtered and the raw means.
-    pub fn apply_progressive(
-        &self,
-        frames: u32,
-        width: u32,
-        height: u32,
-        radiance: &[Vec3],
-        albedo: &[Vec3],
-        surfaces: &[SurfaceGuide],
-    ) -> Vec<Vec3> {
+    pub fn apply_progressive(&self, frames: u32, image: &GuidedImage) -> Vec<Vec3> {
         let strength = self.strength(frames);
         if strength == 0.0 {
-            return radiance.to_vec();
+            return image.radiance.to_vec();
         }
-        let filtered = self.apply(width, height, radiance, albedo, surfaces);
+        let filtered = self.apply(image);
         filtered
             .iter()
-            .zip(radiance)
+            .zip(image.radiance)
             .map(|(f, r)| *r + (*f - *r) * strength)
             .collect()
     }
@@ -89,18 +97,17 @@ impl DiscontinuityFilter {
             && a.normal.dot(b.position - a.position).abs() <= self.depth_tolerance * a.depth
     }
 
-    /// Filters a `width`×`height` image: `radiance` and `albedo` are per-pixel means,
-    /// `surfaces` the surface each pixel saw. Pixels without a surface, or with an
+    /// Filters an image: its per-pixel radiance guided by albedo and surfaces. Pixels without a surface, or with an
     /// albedo channel too dark to divide by, keep their radiance; so do neighbours'
     /// contributions that cannot be demodulated (they are left out of the average).
-    pub fn apply(
-        &self,
-        width: u32,
-        height: u32,
-        radiance: &[Vec3],
-        albedo: &[Vec3],
-        surfaces: &[SurfaceGuide],
-    ) -> Vec<Vec3> {
+    pub fn apply(&self, image: &GuidedImage) -> Vec<Vec3> {
+        let &GuidedImage {
+            width,
+            height,
+            radiance,
+            albedo,
+            surfaces,
+        } = image;
         let (w, h) = (width as usize, height as usize);
         assert!(
             radiance.len() == w * h && albedo.len() == w * h && surfaces.len() == w * h,
@@ -183,11 +190,27 @@ mod tests {
         (radiance, albedo, surfaces)
     }
 
+    fn image<'a>(
+        width: u32,
+        height: u32,
+        radiance: &'a [Vec3],
+        albedo: &'a [Vec3],
+        surfaces: &'a [SurfaceGuide],
+    ) -> GuidedImage<'a> {
+        GuidedImage {
+            width,
+            height,
+            radiance,
+            albedo,
+            surfaces,
+        }
+    }
+
     #[test]
     fn light_is_averaged_on_a_surface_and_never_across_an_edge() {
         let (radiance, albedo, surfaces) = two_planes();
         let filtered =
-            DiscontinuityFilter::for_pattern(4).apply(8, 8, &radiance, &albedo, &surfaces);
+            DiscontinuityFilter::for_pattern(4).apply(&image(8, 8, &radiance, &albedo, &surfaces));
         for y in 0..8 {
             for x in 0..8 {
                 let i = y * 8 + x;
@@ -237,7 +260,7 @@ mod tests {
         let albedo = [Vec3::splat(0.5); 4];
         let radiance = [0.5, 0.5, 5.0, 5.0].map(Vec3::splat);
         let filtered =
-            DiscontinuityFilter::for_pattern(4).apply(4, 1, &radiance, &albedo, &surfaces);
+            DiscontinuityFilter::for_pattern(4).apply(&image(4, 1, &radiance, &albedo, &surfaces));
         assert_eq!(filtered, radiance);
     }
 
@@ -249,10 +272,13 @@ mod tests {
         assert_eq!(filter.strength(16), 0.0);
         assert_eq!(filter.strength(1000), 0.0);
         let (radiance, albedo, surfaces) = two_planes();
-        let late = filter.apply_progressive(16, 8, 8, &radiance, &albedo, &surfaces);
+        let late = filter.apply_progressive(16, &image(8, 8, &radiance, &albedo, &surfaces));
         assert_eq!(late, radiance);
-        let first = filter.apply_progressive(1, 8, 8, &radiance, &albedo, &surfaces);
-        assert_eq!(first, filter.apply(8, 8, &radiance, &albedo, &surfaces));
+        let first = filter.apply_progressive(1, &image(8, 8, &radiance, &albedo, &surfaces));
+        assert_eq!(
+            first,
+            filter.apply(&image(8, 8, &radiance, &albedo, &surfaces))
+        );
     }
 
     #[test]
@@ -262,11 +288,11 @@ mod tests {
         albedo[18] = Vec3::new(0.5, 0.0, 0.5);
         radiance[18] = Vec3::new(0.3, 0.0, 0.4);
         let filtered =
-            DiscontinuityFilter::for_pattern(4).apply(8, 8, &radiance, &albedo, &surfaces);
+            DiscontinuityFilter::for_pattern(4).apply(&image(8, 8, &radiance, &albedo, &surfaces));
         assert_eq!(filtered[9], radiance[9]);
         assert_eq!(filtered[18], radiance[18]);
         let unfiltered =
-            DiscontinuityFilter::for_pattern(1).apply(8, 8, &radiance, &albedo, &surfaces);
+            DiscontinuityFilter::for_pattern(1).apply(&image(8, 8, &radiance, &albedo, &surfaces));
         assert_eq!(unfiltered, radiance);
     }
 }

@@ -275,7 +275,7 @@ fn injected_nan_samples_are_counted_and_never_reach_the_film() {
 /// and no light may cross: shadowed ground stays black, lit pixels keep their value.
 #[test]
 fn the_discontinuity_filter_keeps_light_on_its_side_of_a_depth_edge() {
-    use sylva_engine::discontinuity::DiscontinuityFilter;
+    use sylva_engine::discontinuity::{DiscontinuityFilter, GuidedImage};
     let mut library = GeometryLibrary::default();
     let square =
         library.add(Geometry::new("square", textured_square(1.0), BuildParams::BALANCED).unwrap());
@@ -314,7 +314,13 @@ fn the_discontinuity_filter_keeps_light_on_its_side_of_a_depth_edge() {
             depth_tolerance,
             ..DiscontinuityFilter::for_pattern(4)
         }
-        .apply(48, 48, &raw, &albedo, &frame.surfaces)
+        .apply(&GuidedImage {
+            width: 48,
+            height: 48,
+            radiance: &raw,
+            albedo: &albedo,
+            surfaces: &frame.surfaces,
+        })
     };
     let filtered = filter(0.05);
     let (mut dark, mut lit, mut dark_beside_lit) = (0, 0, 0);

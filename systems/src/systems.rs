@@ -8,7 +8,7 @@ use bevy_ecs::prelude::*;
 use std::time::Instant;
 use sylva_engine::camera::{Camera, CameraView};
 use sylva_engine::components::{Hidden, Instance, Transform};
-use sylva_engine::discontinuity::{DiscontinuityFilter, FilteredImage};
+use sylva_engine::discontinuity::{DiscontinuityFilter, FilteredImage, GuidedImage};
 use sylva_engine::environment::EnvironmentLight;
 use sylva_engine::film::{Film, FrameBuffer, Tile};
 use sylva_engine::geometry::GeometryLibrary;
@@ -421,11 +421,13 @@ pub fn filter_display(
         let pixels = pool.install(|| {
             filter.apply_progressive(
                 film.frames(),
-                film.width(),
-                film.height(),
-                &means,
-                &frame.mean_albedo(),
-                &frame.surfaces,
+                &GuidedImage {
+                    width: film.width(),
+                    height: film.height(),
+                    radiance: &means,
+                    albedo: &frame.mean_albedo(),
+                    surfaces: &frame.surfaces,
+                },
             )
         });
         commands.entity(entity).insert(FilteredImage {
