@@ -5,7 +5,7 @@ use crate::bvh::simd::{NodeKernel, with_node_kernel};
 use crate::bvh::{BuildParams, Bvh, TraversalStats};
 use crate::math::{Aabb, Ray};
 use crate::mesh::{MeshError, TriangleMesh};
-use crate::triangle::{TriangleHit, WatertightRay};
+use crate::triangle::{TriangleBlock, TriangleHit, WatertightRay};
 use glam::Vec3A;
 use rayon::prelude::*;
 
@@ -13,8 +13,8 @@ use rayon::prelude::*;
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Hash, PartialOrd, Ord)]
 pub struct GeometryId(pub u32);
 
-/// A mesh and its BLAS, with the triangles' corners copied in BVH leaf order so a leaf
-/// reads contiguous memory.
+/// A mesh and its BLAS, with each leaf's triangles copied into blocks of four (structure
+/// of arrays), so a leaf test reads contiguous memory and tests four triangles at once.
 #[derive(Clone, Debug)]
 pub struct Geometry {
     /// Human-readable name (species or glTF mesh name).
@@ -23,8 +23,11 @@ pub struct Geometry {
     pub mesh: TriangleMesh,
     /// The BLAS over the mesh's triangles.
     pub bvh: Bvh,
-    /// Triangle corners in slot order.
-    corners: Vec<[Vec3A; 3]>,
+    /// Each leaf's triangles in blocks of four, leaves in slot order.
+    blocks: Vec<TriangleBlock>,
+    /// `leaf_blocks[first]` is the first block of the leaf whose first slot is `first`
+    /// (other entries are unused).
+    leaf_blocks: Vec<u32>,
 }
 
 /// A hit inside one geometry.
@@ -49,16 +52,13 @@ impl Geometry {
             .map(|i| mesh.triangle_bounds(i))
             .collect();
         let bvh = Bvh::build(&bounds, params);
-        let corners = bvh
-            .prim_indices
-            .iter()
-            .map(|&t| mesh.triangle(t as usize))
-            .collect();
+        let (blocks, leaf_blocks) = leaf_blocks(&bvh, &mesh);
         Ok(Self {
             name: name.into(),
             mesh,
             bvh,
-            corners,
+            blocks,
+            leaf_blocks,
         })
     }
 
@@ -90,9 +90,9 @@ impl Geometry {
         let wray = WatertightRay::new(ray);
         let mut best = None;
         kernel.traverse(&self.bvh, ray, stats, |first, count, mut t_max| {
-            self.for_possible_hits(&wray, first, count, |slot, [p0, p1, p2]| {
-                if let Some(hit) = wray.intersect_exact(p0, p1, p2, t_max) {
-                    let triangle = self.bvh.prim_indices[slot];
+            self.for_possible_hits(&wray, first, count, |block, lane| {
+                if let Some(hit) = wray.intersect_lane(block, lane, t_max) {
+                    let triangle = block.triangles[lane];
                     if accept(triangle, &hit) {
                         best = Some(GeometryHit { triangle, hit });
                         t_max = hit.t;
@@ -128,16 +128,16 @@ impl Geometry {
         let wray = WatertightRay::new(ray);
         let mut found = false;
         kernel.traverse(&self.bvh, ray, stats, |first, count, t_max| {
-            found = self.for_possible_hits(&wray, first, count, |slot, [p0, p1, p2]| {
-                wray.intersect_exact(p0, p1, p2, t_max)
-                    .is_some_and(|hit| accept(self.bvh.prim_indices[slot], &hit))
+            found = self.for_possible_hits(&wray, first, count, |block, lane| {
+                wray.intersect_lane(block, lane, t_max)
+                    .is_some_and(|hit| accept(block.triangles[lane], &hit))
             });
             (t_max, found)
         });
         found
     }
 
-    /// Calls `test(slot, corners)` in slot order for the triangles of leaf slots
+    /// Calls `test(block, lane)` in slot order for the triangles of the leaf over slots
     /// `first .. first + count` that the ray may hit (the f32 pass, four at a time, has
     /// ruled out the rest) until it returns true; returns whether it did.
     #[inline(always)]
@@ -146,14 +146,17 @@ impl Geometry {
         wray: &WatertightRay,
         first: usize,
         count: usize,
-        mut test: impl FnMut(usize, [Vec3A; 3]) -> bool,
+        mut test: impl FnMut(&TriangleBlock, usize) -> bool,
     ) -> bool {
-        for (chunk, triangles) in self.corners[first..first + count].chunks(4).enumerate() {
-            let mut possible = wray.possible_hits(triangles);
+        let start = self.leaf_blocks[first] as usize;
+        let mut remaining = count;
+        for block in &self.blocks[start..start + count.div_ceil(4)] {
+            let mut possible = wray.possible_hits(block, remaining.min(4));
+            remaining = remaining.saturating_sub(4);
             while possible != 0 {
                 let lane = possible.trailing_zeros() as usize;
                 possible &= possible - 1;
-                if test(first + 4 * chunk + lane, triangles[lane]) {
+                if test(block, lane) {
                     return true;
                 }
             }
@@ -161,10 +164,42 @@ impl Geometry {
         false
     }
 
-    /// Heap bytes held (mesh, BVH, corner copy).
+    /// Heap bytes held (mesh, BVH, triangle blocks).
     pub fn memory_bytes(&self) -> usize {
-        self.mesh.memory_bytes() + self.bvh.memory_bytes() + self.corners.capacity() * 48
+        self.mesh.memory_bytes()
+            + self.bvh.memory_bytes()
+            + self.blocks.capacity() * std::mem::size_of::<TriangleBlock>()
+            + self.leaf_blocks.capacity() * 4
     }
+}
+
+/// The leaves' triangles in blocks of four, leaves in slot order, and the first block of
+/// each leaf by its first slot.
+fn leaf_blocks(bvh: &Bvh, mesh: &TriangleMesh) -> (Vec<TriangleBlock>, Vec<u32>) {
+    let mut leaves: Vec<(u32, u32)> = bvh
+        .wide
+        .iter()
+        .flat_map(|node| {
+            (0..crate::bvh::WIDTH)
+                .filter(|&lane| node.counts[lane] > 0)
+                .map(|lane| (node.children[lane], node.counts[lane]))
+        })
+        .collect();
+    leaves.sort_unstable();
+    let mut blocks = Vec::with_capacity(leaves.iter().map(|&(_, n)| n.div_ceil(4) as usize).sum());
+    let mut leaf_blocks = vec![0; bvh.prim_indices.len()];
+    for (first, count) in leaves {
+        leaf_blocks[first as usize] = blocks.len() as u32;
+        let slots = &bvh.prim_indices[first as usize..(first + count) as usize];
+        for chunk in slots.chunks(4) {
+            let mut triangles = [(0, [Vec3A::ZERO; 3]); 4];
+            for (lane, &t) in chunk.iter().enumerate() {
+                triangles[lane] = (t, mesh.triangle(t as usize));
+            }
+            blocks.push(TriangleBlock::new(&triangles[..chunk.len()]));
+        }
+    }
+    (blocks, leaf_blocks)
 }
 
 /// Every mesh of the scene; instances refer to them by [`GeometryId`].

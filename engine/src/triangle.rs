@@ -3,16 +3,65 @@
 //! bound of the reconstructed hit point.
 
 use crate::math::{ErrorPoint, Ray, gamma};
-use glam::{Mat4, Vec3A, Vec4};
+use glam::{Vec3A, Vec4};
 
 /// A ray prepared for the watertight test: axis permutation and shear constants.
 #[derive(Clone, Copy, Debug)]
 pub struct WatertightRay {
     origin: Vec3A,
+    /// The origin's coordinates in the order `kx`, `ky`, `kz`.
+    origin_permuted: [f32; 3],
     kx: usize,
     ky: usize,
     kz: usize,
     shear: Vec3A,
+}
+
+/// Four triangles in structure-of-arrays form, the unit of the bottom-level leaf test:
+/// `corners[c][axis]` holds coordinate `axis` (x, y, z) of corner `c` of the four lanes'
+/// triangles, so a ray reads the axes in its own order with plain loads.
+#[derive(Clone, Copy, Debug, PartialEq)]
+#[repr(C, align(64))]
+pub struct TriangleBlock {
+    /// Corner `c`, axis `axis`, four lanes.
+    pub corners: [[Vec4; 3]; 3],
+    /// The mesh's index of each lane's triangle.
+    pub triangles: [u32; 4],
+}
+
+impl TriangleBlock {
+    /// The block of up to four triangles `(index, corners)`; lanes past them repeat the
+    /// last one (callers mask them by count).
+    pub fn new(triangles: &[(u32, [Vec3A; 3])]) -> Self {
+        assert!(
+            (1..=4).contains(&triangles.len()),
+            "a block holds 1 to 4 triangles, not {}",
+            triangles.len()
+        );
+        let lane = |i: usize| triangles[i.min(triangles.len() - 1)];
+        let mut block = Self {
+            corners: [[Vec4::ZERO; 3]; 3],
+            triangles: [0; 4],
+        };
+        for i in 0..4 {
+            let (index, corners) = lane(i);
+            block.triangles[i] = index;
+            for (c, corner) in corners.iter().enumerate() {
+                for axis in 0..3 {
+                    block.corners[c][axis][i] = corner[axis];
+                }
+            }
+        }
+        block
+    }
+
+    /// The corners of lane `lane`'s triangle.
+    pub fn triangle(&self, lane: usize) -> [Vec3A; 3] {
+        [0, 1, 2].map(|c| {
+            let p = &self.corners[c];
+            Vec3A::new(p[0][lane], p[1][lane], p[2][lane])
+        })
+    }
 }
 
 /// Where a ray meets a triangle: distance and barycentric weights of vertices 0, 1, 2.
@@ -46,6 +95,7 @@ impl WatertightRay {
         let shear = Vec3A::new(d[kx] / d[kz], d[ky] / d[kz], 1.0 / d[kz]);
         Self {
             origin: ray.origin,
+            origin_permuted: [ray.origin[kx], ray.origin[ky], ray.origin[kz]],
             kx,
             ky,
             kz,
@@ -111,43 +161,34 @@ impl WatertightRay {
         e.cmplt(Vec3A::splat(-bound)).any() && e.cmpgt(Vec3A::splat(bound)).any()
     }
 
-    /// Up to four triangles at once through [`misses_certainly`](Self::misses_certainly),
-    /// one triangle per SIMD lane: bit `i` is set when triangle `i` may be hit and needs
-    /// [`intersect_exact`](Self::intersect_exact). Every lane runs the scalar pass's
-    /// operations in the same order, so the two decide alike, bit for bit.
-    #[inline]
-    pub fn possible_hits(&self, triangles: &[[Vec3A; 3]]) -> u32 {
-        debug_assert!((1..=4).contains(&triangles.len()));
-        let lane = |i: usize| triangles[i.min(triangles.len() - 1)];
-        let (t0, t1, t2, t3) = (lane(0), lane(1), lane(2), lane(3));
-        // Per corner, x, y and z of the four triangles, relative to the origin.
-        let relative = |corner: usize| {
-            let m = Mat4::from_cols(
-                t0[corner].extend(0.0),
-                t1[corner].extend(0.0),
-                t2[corner].extend(0.0),
-                t3[corner].extend(0.0),
-            )
-            .transpose();
-            [
-                m.x_axis - Vec4::splat(self.origin.x),
-                m.y_axis - Vec4::splat(self.origin.y),
-                m.z_axis - Vec4::splat(self.origin.z),
-            ]
-        };
-        let (a, b, c) = (relative(0), relative(1), relative(2));
-        let (sx, sy) = (Vec4::splat(self.shear.x), Vec4::splat(self.shear.y));
+    /// The f32 pass of [`misses_certainly`](Self::misses_certainly) on the four lanes of
+    /// `block` at once, one triangle per SIMD lane: bit `i` is set when lane `i` (of the
+    /// first `lanes`) may be hit and needs [`intersect_lane`](Self::intersect_lane).
+    /// Every lane runs the scalar pass's operations in the same order, so the two decide
+    /// alike, bit for bit. The block's coordinates are read in the ray's axis order
+    /// straight from memory: no transposes, no shuffles.
+    #[inline(always)]
+    pub fn possible_hits(&self, block: &TriangleBlock, lanes: usize) -> u32 {
         let (kx, ky, kz) = (self.kx, self.ky, self.kz);
-        let sheared = |v: &[Vec4; 3]| (v[kx] - sx * v[kz], v[ky] - sy * v[kz]);
-        let ((ax, ay), (bx, by), (cx, cy)) = (sheared(&a), sheared(&b), sheared(&c));
+        let [ox, oy, oz] = self.origin_permuted.map(Vec4::splat);
+        let (sx, sy) = (Vec4::splat(self.shear.x), Vec4::splat(self.shear.y));
+        // Sheared x and y of a corner relative to the origin, and their magnitudes
+        // (|x part| + |shear part|) for the error bound.
+        let corner = |c: usize| {
+            let p = &block.corners[c];
+            let (rx, ry, rz) = (p[kx] - ox, p[ky] - oy, p[kz] - oz);
+            let (zx, zy) = (sx * rz, sy * rz);
+            (rx - zx, ry - zy, rx.abs() + zx.abs(), ry.abs() + zy.abs())
+        };
+        let (ax, ay, amx, amy) = corner(0);
+        let (bx, by, bmx, bmy) = corner(1);
+        let (cx, cy, cmx, cmy) = corner(2);
         let e0 = bx * cy - by * cx;
         let e1 = cx * ay - cy * ax;
         let e2 = ax * by - ay * bx;
-        let magnitude = |k: usize, s: Vec4| {
-            let m = |v: &[Vec4; 3]| v[k].abs() + (s * v[kz]).abs();
-            m(&a).max(m(&b)).max(m(&c))
-        };
-        let bound = Vec4::splat(32.0 * f32::EPSILON * 0.5) * magnitude(kx, sx) * magnitude(ky, sy);
+        let magnitude_x = amx.max(bmx).max(cmx);
+        let magnitude_y = amy.max(bmy).max(cmy);
+        let bound = Vec4::splat(32.0 * f32::EPSILON * 0.5) * magnitude_x * magnitude_y;
         let reliable = bound.is_finite_mask()
             & bound.cmpge(Vec4::splat(MIN_RELIABLE_BOUND))
             & e0.is_finite_mask()
@@ -157,7 +198,29 @@ impl WatertightRay {
         let below = e0.cmplt(low) | e1.cmplt(low) | e2.cmplt(low);
         let above = e0.cmpgt(high) | e1.cmpgt(high) | e2.cmpgt(high);
         let certain_miss = (reliable & below & above).bitmask();
-        !certain_miss & ((1 << triangles.len()) - 1)
+        !certain_miss & ((1 << lanes) - 1)
+    }
+
+    /// [`intersect_exact`](Self::intersect_exact) on lane `lane` of `block`, bit for bit.
+    #[inline(always)]
+    pub fn intersect_lane(
+        &self,
+        block: &TriangleBlock,
+        lane: usize,
+        t_max: f32,
+    ) -> Option<TriangleHit> {
+        let (kx, ky, kz) = (self.kx, self.ky, self.kz);
+        let [ox, oy, oz] = self.origin_permuted.map(f64::from);
+        // Relative coordinates in the ray's axis order (x, y, z = kx, ky, kz).
+        let corner = |c: usize| {
+            let p = &block.corners[c];
+            (
+                f64::from(p[kx][lane]) - ox,
+                f64::from(p[ky][lane]) - oy,
+                f64::from(p[kz][lane]) - oz,
+            )
+        };
+        self.exact_from_relative(corner(0), corner(1), corner(2), t_max)
     }
 
     /// The watertight test itself, in f64 after the f32 ray set-up.
@@ -171,22 +234,33 @@ impl WatertightRay {
     ) -> Option<TriangleHit> {
         let (kx, ky, kz) = (self.kx, self.ky, self.kz);
         let origin = self.origin.as_dvec3();
-        let (a, b, c) = (
-            p0.as_dvec3() - origin,
-            p1.as_dvec3() - origin,
-            p2.as_dvec3() - origin,
-        );
+        let relative = |p: Vec3A| {
+            let r = p.as_dvec3() - origin;
+            (r[kx], r[ky], r[kz])
+        };
+        self.exact_from_relative(relative(p0), relative(p1), relative(p2), t_max)
+    }
+
+    /// The f64 test on corners relative to the origin, in the ray's axis order.
+    #[inline(always)]
+    fn exact_from_relative(
+        &self,
+        a: (f64, f64, f64),
+        b: (f64, f64, f64),
+        c: (f64, f64, f64),
+        t_max: f32,
+    ) -> Option<TriangleHit> {
         let (sx, sy, sz) = (
             f64::from(self.shear.x),
             f64::from(self.shear.y),
             f64::from(self.shear.z),
         );
-        let ax = a[kx] - sx * a[kz];
-        let ay = a[ky] - sy * a[kz];
-        let bx = b[kx] - sx * b[kz];
-        let by = b[ky] - sy * b[kz];
-        let cx = c[kx] - sx * c[kz];
-        let cy = c[ky] - sy * c[kz];
+        let ax = a.0 - sx * a.2;
+        let ay = a.1 - sy * a.2;
+        let bx = b.0 - sx * b.2;
+        let by = b.1 - sy * b.2;
+        let cx = c.0 - sx * c.2;
+        let cy = c.1 - sy * c.2;
         let e0 = bx * cy - by * cx;
         let e1 = cx * ay - cy * ax;
         let e2 = ax * by - ay * bx;
@@ -197,9 +271,9 @@ impl WatertightRay {
         if det == 0.0 || !det.is_finite() {
             return None;
         }
-        let az = sz * a[kz];
-        let bz = sz * b[kz];
-        let cz = sz * c[kz];
+        let az = sz * a.2;
+        let bz = sz * b.2;
+        let cz = sz * c.2;
         let t_scaled = e0 * az + e1 * bz + e2 * cz;
         let t_max64 = f64::from(t_max);
         if det < 0.0 && (t_scaled >= 0.0 || t_scaled < t_max64 * det) {
@@ -387,7 +461,7 @@ mod tests {
     }
 
     #[test]
-    fn the_four_lane_pass_decides_as_the_scalar_pass() {
+    fn the_block_tests_decide_as_the_scalar_tests() {
         let mut state = 0x51ed_2701_aa3c_9e4du64;
         let point = |state: &mut u64, scale: f32| {
             Vec3A::new(
@@ -396,7 +470,7 @@ mod tests {
                 (uniform(state) - 0.5) * scale,
             )
         };
-        let (mut possible, mut lanes) = (0u32, 0u32);
+        let (mut possible, mut hits, mut lanes) = (0u32, 0u32, 0u32);
         for i in 0..50_000 {
             let scale = 10f32.powi(i % 7 - 3);
             let offset = if i % 3 == 0 {
@@ -426,23 +500,41 @@ mod tests {
                 continue;
             }
             let watertight = WatertightRay::new(&ray);
-            let mask = watertight.possible_hits(&triangles);
+            let block = TriangleBlock::new(
+                &triangles
+                    .iter()
+                    .enumerate()
+                    .map(|(i, &t)| (i as u32 * 7, t))
+                    .collect::<Vec<_>>(),
+            );
+            let mask = watertight.possible_hits(&block, count);
+            let t_max = [f32::INFINITY, 2.0 * scale][i as usize % 2];
             for (lane, [p0, p1, p2]) in triangles.iter().enumerate() {
+                assert_eq!(block.triangle(lane), [*p0, *p1, *p2]);
+                assert_eq!(block.triangles[lane], lane as u32 * 7);
                 let scalar = !watertight.misses_certainly(*p0, *p1, *p2);
                 assert_eq!(
                     mask >> lane & 1 == 1,
                     scalar,
                     "lane {lane} of {triangles:?}, {ray:?}"
                 );
+                let exact = watertight.intersect_exact(*p0, *p1, *p2, t_max);
+                let from_block = watertight.intersect_lane(&block, lane, t_max);
+                assert_eq!(
+                    exact.map(|h| (h.t.to_bits(), h.barycentrics.to_array().map(f32::to_bits))),
+                    from_block.map(|h| (h.t.to_bits(), h.barycentrics.to_array().map(f32::to_bits))),
+                    "lane {lane} of {triangles:?}, {ray:?}"
+                );
                 possible += u32::from(scalar);
+                hits += u32::from(exact.is_some());
                 lanes += 1;
             }
             assert_eq!(mask >> count, 0, "lanes past the triangles are set");
         }
         // Both outcomes must occur often enough for the comparison to mean something.
         assert!(
-            possible > lanes / 20 && possible < lanes * 19 / 20,
-            "{possible} of {lanes}"
+            possible > lanes / 20 && possible < lanes * 19 / 20 && hits > lanes / 50,
+            "{possible} possible and {hits} hits of {lanes}"
         );
     }
 
