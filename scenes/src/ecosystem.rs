@@ -619,7 +619,7 @@ pub fn build(spec: &EcosystemSpec, seed: u64) -> Result<SceneBuild, SceneError> 
     let geometries: Vec<Geometry> = meshes
         .into_par_iter()
         .map(|(name, mesh)| {
-            Geometry::new(&name, mesh, BuildParams::BALANCED).map_err(|e| SceneError::Mesh {
+            Geometry::new(&name, mesh, BuildParams::BOTTOM_LEVEL).map_err(|e| SceneError::Mesh {
                 scene: spec.name.clone(),
                 mesh: name.clone(),
                 source: e,

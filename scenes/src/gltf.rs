@@ -950,7 +950,7 @@ impl GltfScene {
             .meshes
             .into_par_iter()
             .map(|m| {
-                Geometry::new(&m.name, m.mesh, BuildParams::BALANCED).map_err(|e| {
+                Geometry::new(&m.name, m.mesh, BuildParams::BOTTOM_LEVEL).map_err(|e| {
                     SceneError::Mesh {
                         scene: name.clone(),
                         mesh: m.name.clone(),
