@@ -2,12 +2,15 @@
 //! instance, collected in the [`GeometryLibrary`].
 
 use crate::bvh::simd::{NodeKernel, with_node_kernel};
-use crate::bvh::{BuildParams, Bvh, TraversalStats};
+use crate::bvh::{BuildParams, Bvh, PADDING, TraversalStats};
 use crate::math::{Aabb, Ray};
 use crate::mesh::{MeshError, TriangleMesh};
 use crate::triangle::{TriangleBlock, TriangleHit, WatertightRay};
 use glam::Vec3A;
 use rayon::prelude::*;
+
+/// Triangles per [`TriangleBlock`]: the bottom level's leaves are aligned to it.
+const TRIANGLE_BLOCK: usize = 4;
 
 /// Index of a mesh in the [`GeometryLibrary`].
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Hash, PartialOrd, Ord)]
@@ -23,11 +26,9 @@ pub struct Geometry {
     pub mesh: TriangleMesh,
     /// The BLAS over the mesh's triangles.
     pub bvh: Bvh,
-    /// Each leaf's triangles in blocks of four, leaves in slot order.
+    /// The triangles of slots `4b .. 4b + 4` in block `b`: leaves start at multiples of
+    /// four ([`BuildParams::leaf_block`]), so a leaf's triangles fill whole blocks.
     blocks: Vec<TriangleBlock>,
-    /// `leaf_blocks[first]` is the first block of the leaf whose first slot is `first`
-    /// (other entries are unused).
-    leaf_blocks: Vec<u32>,
 }
 
 /// A hit inside one geometry.
@@ -40,7 +41,8 @@ pub struct GeometryHit {
 }
 
 impl Geometry {
-    /// Checks the mesh and builds its BLAS on the current rayon pool.
+    /// Checks the mesh and builds its BLAS on the current rayon pool (leaves aligned to
+    /// blocks of four triangles, whatever `params.leaf_block` says).
     pub fn new(
         name: impl Into<String>,
         mesh: TriangleMesh,
@@ -51,14 +53,31 @@ impl Geometry {
             .into_par_iter()
             .map(|i| mesh.triangle_bounds(i))
             .collect();
-        let bvh = Bvh::build(&bounds, params);
-        let (blocks, leaf_blocks) = leaf_blocks(&bvh, &mesh);
+        let bvh = Bvh::build(
+            &bounds,
+            BuildParams {
+                leaf_block: TRIANGLE_BLOCK,
+                ..params
+            },
+        );
+        let blocks = bvh
+            .prim_indices
+            .chunks(TRIANGLE_BLOCK)
+            .map(|slots| {
+                let mut triangles = [(0, [Vec3A::ZERO; 3]); TRIANGLE_BLOCK];
+                let mut lanes = 0;
+                for &t in slots.iter().filter(|&&t| t != PADDING) {
+                    triangles[lanes] = (t, mesh.triangle(t as usize));
+                    lanes += 1;
+                }
+                TriangleBlock::new(&triangles[..lanes])
+            })
+            .collect();
         Ok(Self {
             name: name.into(),
             mesh,
             bvh,
             blocks,
-            leaf_blocks,
         })
     }
 
@@ -148,7 +167,7 @@ impl Geometry {
         count: usize,
         mut test: impl FnMut(&TriangleBlock, usize) -> bool,
     ) -> bool {
-        let start = self.leaf_blocks[first] as usize;
+        let start = first / TRIANGLE_BLOCK;
         let mut remaining = count;
         for block in &self.blocks[start..start + count.div_ceil(4)] {
             let mut possible = wray.possible_hits(block, remaining.min(4));
@@ -169,37 +188,7 @@ impl Geometry {
         self.mesh.memory_bytes()
             + self.bvh.memory_bytes()
             + self.blocks.capacity() * std::mem::size_of::<TriangleBlock>()
-            + self.leaf_blocks.capacity() * 4
     }
-}
-
-/// The leaves' triangles in blocks of four, leaves in slot order, and the first block of
-/// each leaf by its first slot.
-fn leaf_blocks(bvh: &Bvh, mesh: &TriangleMesh) -> (Vec<TriangleBlock>, Vec<u32>) {
-    let mut leaves: Vec<(u32, u32)> = bvh
-        .wide
-        .iter()
-        .flat_map(|node| {
-            (0..crate::bvh::WIDTH)
-                .filter(|&lane| node.counts[lane] > 0)
-                .map(|lane| (node.children[lane], node.counts[lane]))
-        })
-        .collect();
-    leaves.sort_unstable();
-    let mut blocks = Vec::with_capacity(leaves.iter().map(|&(_, n)| n.div_ceil(4) as usize).sum());
-    let mut leaf_blocks = vec![0; bvh.prim_indices.len()];
-    for (first, count) in leaves {
-        leaf_blocks[first as usize] = blocks.len() as u32;
-        let slots = &bvh.prim_indices[first as usize..(first + count) as usize];
-        for chunk in slots.chunks(4) {
-            let mut triangles = [(0, [Vec3A::ZERO; 3]); 4];
-            for (lane, &t) in chunk.iter().enumerate() {
-                triangles[lane] = (t, mesh.triangle(t as usize));
-            }
-            blocks.push(TriangleBlock::new(&triangles[..chunk.len()]));
-        }
-    }
-    (blocks, leaf_blocks)
 }
 
 /// Every mesh of the scene; instances refer to them by [`GeometryId`].

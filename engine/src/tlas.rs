@@ -191,9 +191,9 @@ fn is_hittable(bounds: &Aabb) -> bool {
 }
 
 impl TopLevel {
-    /// Builds from scratch on the current rayon pool. Instances with singular transforms
-    /// or unknown geometry are left out and counted in `skipped`; instances of empty
-    /// meshes cannot be hit and are left out of the tree.
+    /// Builds from scratch on the current rayon pool (`params.leaf_block` is taken as 1).
+    /// Instances with singular transforms or unknown geometry are left out and counted in
+    /// `skipped`; instances of empty meshes cannot be hit and are left out of the tree.
     pub fn build(
         library: &GeometryLibrary,
         instances: &[InstanceDesc],
@@ -221,7 +221,14 @@ impl TopLevel {
                 skipped.ids.push(i as u32);
             }
         }
-        let bvh = Bvh::build(&bounds, params);
+        // Records are stored one per slot: no padding slots.
+        let bvh = Bvh::build(
+            &bounds,
+            BuildParams {
+                leaf_block: 1,
+                ..params
+            },
+        );
         let records = bvh
             .prim_indices
             .par_iter()

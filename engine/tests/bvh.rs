@@ -6,7 +6,7 @@ mod common;
 use common::*;
 use glam::{Affine3A, Vec3, Vec3A};
 use proptest::prelude::*;
-use sylva_engine::bvh::{BuildParams, Bvh, TraversalStats};
+use sylva_engine::bvh::{BuildParams, Bvh, PADDING, TraversalStats, WIDTH};
 use sylva_engine::geometry::{Geometry, GeometryId, GeometryLibrary};
 use sylva_engine::math::{Aabb, Ray};
 use sylva_engine::mesh::TriangleMesh;
@@ -277,7 +277,7 @@ fn validate_after_every_preset_on_degenerate_input() {
             );
             if *case == "NaN and inf vertices" {
                 assert_eq!(
-                    bvh.prim_indices.len(),
+                    bvh.prim_indices.iter().filter(|&&p| p != PADDING).count(),
                     98,
                     "the two triangles with non-finite corners are left out"
                 );
@@ -445,4 +445,64 @@ fn validate_rejects_corrupted_trees() {
     let mut lost = good.clone();
     lost.prim_indices.pop();
     assert!(lost.validate(&bounds).is_err(), "a primitive left out");
+}
+
+#[test]
+fn block_aligned_leaves_start_at_multiples_and_pad_only_their_ends() {
+    let mut rng = TestRng::new(91);
+    let mesh = random_mesh(&mut rng, 700, 3.0, 0.3);
+    let bounds = bounds_of(&mesh);
+    for block in [1, 3, 4] {
+        let bvh = Bvh::build(
+            &bounds,
+            BuildParams {
+                leaf_block: block,
+                ..BuildParams::FAST
+            },
+        );
+        bvh.validate(&bounds).unwrap();
+        let padding = bvh.prim_indices.iter().filter(|&&p| p == PADDING).count();
+        assert_eq!(bvh.prim_indices.len() - padding, 700, "block {block}");
+        let mut owned = vec![false; bvh.prim_indices.len()];
+        for node in bvh.wide.iter() {
+            for lane in (0..WIDTH).filter(|&l| node.counts[l] > 0) {
+                let (first, count) = (node.children[lane] as usize, node.counts[lane] as usize);
+                assert_eq!(first % block, 0, "block {block}: leaf at slot {first}");
+                owned[first..first + count].fill(true);
+                // The slots after the leaf up to the next multiple are padding.
+                let end = (first + count).next_multiple_of(block);
+                assert!(bvh.prim_indices[first + count..end].iter().all(|&p| p == PADDING));
+            }
+        }
+        let unowned = owned.iter().filter(|&&o| !o).count();
+        assert_eq!(unowned, padding, "block {block}: padding is exactly the unowned slots");
+        if block == 1 {
+            assert_eq!(padding, 0);
+        }
+    }
+
+    // A leaf that claims a padding slot is corrupt.
+    let padded = Bvh::build(
+        &bounds,
+        BuildParams {
+            leaf_block: 4,
+            ..BuildParams::FAST
+        },
+    );
+    let (node, lane) = padded
+        .wide
+        .iter()
+        .enumerate()
+        .find_map(|(i, n)| {
+            (0..WIDTH)
+                .find(|&l| {
+                    let (first, count) = (n.children[l] as usize, n.counts[l] as usize);
+                    count > 0 && padded.prim_indices.get(first + count) == Some(&PADDING)
+                })
+                .map(|l| (i, l))
+        })
+        .expect("some leaf is followed by padding");
+    let mut grown = padded.clone();
+    grown.wide[node].counts[lane] += 1;
+    assert!(grown.validate(&bounds).is_err(), "a wide leaf owning padding");
 }

@@ -24,7 +24,10 @@ pub struct BuildParams {
     /// worse trees) instead of along all three.
     pub longest_axis_only: bool,
     /// Primitives a leaf tests together (SIMD lanes): the SAH counts a leaf's cost in
-    /// blocks of this many, so three primitives cost as much as four. 1 counts each.
+    /// blocks of this many, so three primitives cost as much as four, and every leaf
+    /// starts at a multiple of it, the slots after its primitives up to the next
+    /// multiple holding [`PADDING`](super::PADDING) (so slot `s` is lane `s % n` of
+    /// block `s / n`). 1 counts each primitive and pads nothing.
     pub leaf_block: usize,
 }
 
@@ -313,7 +316,10 @@ impl Bvh {
         let mut nodes = Vec::with_capacity(tree.node_count());
         nodes.push(tree.nodes[0]);
         tree.flatten_into(0, &mut nodes);
-        let prim_indices = refs.iter().map(PrimRef::index).collect();
+        let mut prim_indices: Vec<u32> = refs.iter().map(PrimRef::index).collect();
+        if params.leaf_block > 1 {
+            prim_indices = align_leaves(&mut nodes, &prim_indices, params.leaf_block);
+        }
         let wide = super::wide::collapse(&nodes);
         Bvh {
             nodes,
@@ -515,6 +521,26 @@ impl Builder {
             }
         }
     }
+}
+
+/// Moves every leaf's slots to start at a multiple of `block`, leaves in slot order,
+/// filling the gaps with [`PADDING`](super::PADDING); rewrites the leaves' first slots in
+/// `nodes` and returns the new slot order.
+fn align_leaves(nodes: &mut [BvhNode], prim_indices: &[u32], block: usize) -> Vec<u32> {
+    let mut leaves: Vec<usize> = (0..nodes.len()).filter(|&i| nodes[i].is_leaf()).collect();
+    leaves.sort_unstable_by_key(|&i| nodes[i].first());
+    let padded: usize = leaves
+        .iter()
+        .map(|&i| (nodes[i].count() as usize).next_multiple_of(block))
+        .sum();
+    let mut aligned = Vec::with_capacity(padded);
+    for i in leaves {
+        let (first, count) = (nodes[i].first() as usize, nodes[i].count() as usize);
+        nodes[i] = nodes[i].with_first(aligned.len() as u32);
+        aligned.extend_from_slice(&prim_indices[first..first + count]);
+        aligned.resize(aligned.len().next_multiple_of(block), super::PADDING);
+    }
+    aligned
 }
 
 /// Per-axis scale and offset mapping a centroid to a bin; scale 0 marks an

@@ -18,6 +18,9 @@ pub use traverse::{NodeRay, TraversalStats};
 pub use validate::BvhReport;
 pub use wide::{WIDTH, WideNode};
 
+/// The `prim_indices` entry of a slot that only pads a leaf to a whole block.
+pub const PADDING: u32 = u32::MAX;
+
 /// Traversal stack capacity; [`build`](Bvh::build) bounds the depth below it.
 pub const MAX_DEPTH: usize = 96;
 
@@ -29,8 +32,10 @@ pub struct Bvh {
     pub nodes: Vec<BvhNode>,
     /// The same tree collapsed to [`WIDTH`] children per node: what traversal walks.
     pub wide: Vec<WideNode>,
-    /// `prim_indices[slot]` is the caller's index of the primitive in leaf slot `slot`.
-    /// Primitives with empty or non-finite boxes are left out.
+    /// `prim_indices[slot]` is the caller's index of the primitive in leaf slot `slot`,
+    /// or [`PADDING`] after a leaf's primitives when leaves are aligned to blocks
+    /// ([`BuildParams::leaf_block`]). Primitives with empty or non-finite boxes are left
+    /// out.
     pub prim_indices: Vec<u32>,
 }
 

@@ -4,7 +4,7 @@
 //! primitives move away from where it was built: [`Bvh::sah_cost`] measures by how much,
 //! so the caller can rebuild once it has degraded.
 
-use super::Bvh;
+use super::{Bvh, PADDING};
 use crate::math::Aabb;
 
 /// Why [`Bvh::refit`] refused; the tree is left unchanged.
@@ -29,7 +29,7 @@ pub enum RefitError {
 impl Bvh {
     /// Recomputes every box of the tree from `slot_bounds`, indexed by leaf slot (the
     /// primitive of slot `s` is the caller's `prim_indices[s]`). Refuses, changing
-    /// nothing, when the count differs or a box is empty or not finite.
+    /// nothing, when the count differs or a leaf slot's box is empty or not finite.
     pub fn refit(&mut self, slot_bounds: &[Aabb]) -> Result<(), RefitError> {
         if slot_bounds.len() != self.prim_indices.len() {
             return Err(RefitError::SlotCount {
@@ -37,10 +37,11 @@ impl Bvh {
                 given: slot_bounds.len(),
             });
         }
-        if let Some(slot) = slot_bounds
-            .iter()
-            .position(|b| b.is_empty() || !b.min.is_finite() || !b.max.is_finite())
-        {
+        // Padding slots belong to no leaf: their boxes are never read.
+        if let Some(slot) = (0..slot_bounds.len()).find(|&s| {
+            let b = &slot_bounds[s];
+            self.prim_indices[s] != PADDING && (b.is_empty() || !b.min.is_finite() || !b.max.is_finite())
+        }) {
             return Err(RefitError::InvalidBox { slot });
         }
         let union_of_slots = |first: u32, count: u32| {

@@ -1,6 +1,6 @@
 //! Structural validation of a built BVH: every invariant a traversal relies on.
 
-use super::{Bvh, MAX_DEPTH};
+use super::{Bvh, MAX_DEPTH, PADDING};
 use crate::math::Aabb;
 
 /// Shape of a valid BVH, returned by [`Bvh::validate`].
@@ -28,7 +28,12 @@ impl Bvh {
         let mut expected: Vec<u32> = (0..prim_bounds.len() as u32)
             .filter(|&i| valid(&prim_bounds[i as usize]))
             .collect();
-        let mut referenced = self.prim_indices.clone();
+        let mut referenced: Vec<u32> = self
+            .prim_indices
+            .iter()
+            .copied()
+            .filter(|&p| p != PADDING)
+            .collect();
         referenced.sort_unstable();
         expected.sort_unstable();
         if referenced != expected {
@@ -80,6 +85,9 @@ impl Bvh {
                     if std::mem::replace(&mut seen_slot[slot], true) {
                         return Err(format!("slot {slot} owned by two leaves"));
                     }
+                    if self.prim_indices[slot] == PADDING {
+                        return Err(format!("leaf {index} owns padding slot {slot}"));
+                    }
                     let prim = &prim_bounds[self.prim_indices[slot] as usize];
                     if !bounds.contains(prim) {
                         return Err(format!(
@@ -113,7 +121,7 @@ impl Bvh {
         if let Some(i) = seen_node.iter().position(|s| !s) {
             return Err(format!("node {i} is unreachable"));
         }
-        if let Some(s) = seen_slot.iter().position(|s| !s) {
+        if let Some(s) = (0..seen_slot.len()).find(|&s| !seen_slot[s] && self.prim_indices[s] != PADDING) {
             return Err(format!("slot {s} belongs to no leaf"));
         }
         self.validate_wide(prim_bounds)?;
@@ -166,6 +174,9 @@ impl Bvh {
                         if std::mem::replace(&mut seen_slot[slot], true) {
                             return Err(format!("slot {slot} owned by two wide leaves"));
                         }
+                        if self.prim_indices[slot] == PADDING {
+                            return Err(format!("wide node {index} owns padding slot {slot}"));
+                        }
                         if !b.contains(&prim_bounds[self.prim_indices[slot] as usize]) {
                             return Err(format!(
                                 "wide node {index} lane {lane} does not contain primitive {}",
@@ -186,7 +197,7 @@ impl Bvh {
         if let Some(i) = seen_node.iter().position(|s| !s) {
             return Err(format!("wide node {i} is unreachable"));
         }
-        if let Some(s) = seen_slot.iter().position(|s| !s) {
+        if let Some(s) = (0..seen_slot.len()).find(|&s| !seen_slot[s] && self.prim_indices[s] != PADDING) {
             return Err(format!("slot {s} belongs to no wide leaf"));
         }
         Ok(())
