@@ -257,6 +257,8 @@ impl Bvh {
         }
         let node_ray = NodeRay::new(ray);
         let mut t_max = ray.t_max;
+        // Counted in registers and added once: `stats` lives in memory across `visit`.
+        let (mut nodes, mut primitives) = (0u64, 0u64);
         // The nearest hit child stays in `current` instead of going through the stack:
         // most nodes hand on exactly one child, and a push and pop per node cost as much
         // as its box test.
@@ -266,17 +268,17 @@ impl Bvh {
             t: 0.0,
         };
         let mut stack = Stack::new();
-        loop {
+        'walk: loop {
             if current.count > 0 {
-                stats.primitive_tests += u64::from(current.count);
+                primitives += u64::from(current.count);
                 let (t, stop) = visit(current.first as usize, current.count as usize, t_max);
                 t_max = t;
                 if stop {
-                    return;
+                    break 'walk;
                 }
             } else {
                 let node = &self.wide[current.first as usize];
-                stats.nodes_visited += 1;
+                nodes += 1;
                 let (t, mut mask) = kernel.hit_children(&node_ray, node, t_max);
                 let child = |lane: usize| Pending {
                     first: node.children[lane],
@@ -328,7 +330,7 @@ impl Bvh {
             // Next: the nearest pending subtree still in front of the closest hit.
             loop {
                 let Some(entry) = stack.pop() else {
-                    return;
+                    break 'walk;
                 };
                 if entry.t < t_max {
                     current = entry;
@@ -336,5 +338,7 @@ impl Bvh {
                 }
             }
         }
+        stats.nodes_visited += nodes;
+        stats.primitive_tests += primitives;
     }
 }
