@@ -522,7 +522,8 @@ mod tests {
                 let from_block = watertight.intersect_lane(&block, lane, t_max);
                 assert_eq!(
                     exact.map(|h| (h.t.to_bits(), h.barycentrics.to_array().map(f32::to_bits))),
-                    from_block.map(|h| (h.t.to_bits(), h.barycentrics.to_array().map(f32::to_bits))),
+                    from_block
+                        .map(|h| (h.t.to_bits(), h.barycentrics.to_array().map(f32::to_bits))),
                     "lane {lane} of {triangles:?}, {ray:?}"
                 );
                 possible += u32::from(scalar);

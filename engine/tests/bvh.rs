@@ -471,11 +471,18 @@ fn block_aligned_leaves_start_at_multiples_and_pad_only_their_ends() {
                 owned[first..first + count].fill(true);
                 // The slots after the leaf up to the next multiple are padding.
                 let end = (first + count).next_multiple_of(block);
-                assert!(bvh.prim_indices[first + count..end].iter().all(|&p| p == PADDING));
+                assert!(
+                    bvh.prim_indices[first + count..end]
+                        .iter()
+                        .all(|&p| p == PADDING)
+                );
             }
         }
         let unowned = owned.iter().filter(|&&o| !o).count();
-        assert_eq!(unowned, padding, "block {block}: padding is exactly the unowned slots");
+        assert_eq!(
+            unowned, padding,
+            "block {block}: padding is exactly the unowned slots"
+        );
         if block == 1 {
             assert_eq!(padding, 0);
         }
@@ -504,5 +511,8 @@ fn block_aligned_leaves_start_at_multiples_and_pad_only_their_ends() {
         .expect("some leaf is followed by padding");
     let mut grown = padded.clone();
     grown.wide[node].counts[lane] += 1;
-    assert!(grown.validate(&bounds).is_err(), "a wide leaf owning padding");
+    assert!(
+        grown.validate(&bounds).is_err(),
+        "a wide leaf owning padding"
+    );
 }

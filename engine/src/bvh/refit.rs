@@ -40,7 +40,8 @@ impl Bvh {
         // Padding slots belong to no leaf: their boxes are never read.
         if let Some(slot) = (0..slot_bounds.len()).find(|&s| {
             let b = &slot_bounds[s];
-            self.prim_indices[s] != PADDING && (b.is_empty() || !b.min.is_finite() || !b.max.is_finite())
+            self.prim_indices[s] != PADDING
+                && (b.is_empty() || !b.min.is_finite() || !b.max.is_finite())
         }) {
             return Err(RefitError::InvalidBox { slot });
         }

@@ -121,7 +121,9 @@ impl Bvh {
         if let Some(i) = seen_node.iter().position(|s| !s) {
             return Err(format!("node {i} is unreachable"));
         }
-        if let Some(s) = (0..seen_slot.len()).find(|&s| !seen_slot[s] && self.prim_indices[s] != PADDING) {
+        if let Some(s) =
+            (0..seen_slot.len()).find(|&s| !seen_slot[s] && self.prim_indices[s] != PADDING)
+        {
             return Err(format!("slot {s} belongs to no leaf"));
         }
         self.validate_wide(prim_bounds)?;
@@ -197,7 +199,9 @@ impl Bvh {
         if let Some(i) = seen_node.iter().position(|s| !s) {
             return Err(format!("wide node {i} is unreachable"));
         }
-        if let Some(s) = (0..seen_slot.len()).find(|&s| !seen_slot[s] && self.prim_indices[s] != PADDING) {
+        if let Some(s) =
+            (0..seen_slot.len()).find(|&s| !seen_slot[s] && self.prim_indices[s] != PADDING)
+        {
             return Err(format!("slot {s} belongs to no wide leaf"));
         }
         Ok(())
