@@ -169,9 +169,9 @@ impl Geometry {
     ) -> bool {
         let start = first / TRIANGLE_BLOCK;
         let mut remaining = count;
-        for block in &self.blocks[start..start + count.div_ceil(4)] {
-            let mut possible = wray.possible_hits(block, remaining.min(4));
-            remaining = remaining.saturating_sub(4);
+        for block in &self.blocks[start..start + count.div_ceil(TRIANGLE_BLOCK)] {
+            let mut possible = wray.possible_hits(block, remaining.min(TRIANGLE_BLOCK));
+            remaining = remaining.saturating_sub(TRIANGLE_BLOCK);
             while possible != 0 {
                 let lane = possible.trailing_zeros() as usize;
                 possible &= possible - 1;

@@ -121,9 +121,7 @@ impl Bvh {
         if let Some(i) = seen_node.iter().position(|s| !s) {
             return Err(format!("node {i} is unreachable"));
         }
-        if let Some(s) =
-            (0..seen_slot.len()).find(|&s| !seen_slot[s] && self.prim_indices[s] != PADDING)
-        {
+        if let Some(s) = self.unowned_slot(&seen_slot) {
             return Err(format!("slot {s} belongs to no leaf"));
         }
         self.validate_wide(prim_bounds)?;
@@ -199,11 +197,14 @@ impl Bvh {
         if let Some(i) = seen_node.iter().position(|s| !s) {
             return Err(format!("wide node {i} is unreachable"));
         }
-        if let Some(s) =
-            (0..seen_slot.len()).find(|&s| !seen_slot[s] && self.prim_indices[s] != PADDING)
-        {
+        if let Some(s) = self.unowned_slot(&seen_slot) {
             return Err(format!("slot {s} belongs to no wide leaf"));
         }
         Ok(())
+    }
+
+    /// The first slot that no leaf owned (`seen`) and that is not padding.
+    fn unowned_slot(&self, seen: &[bool]) -> Option<usize> {
+        (0..seen.len()).find(|&s| !seen[s] && self.prim_indices[s] != PADDING)
     }
 }
