@@ -2,7 +2,7 @@
 //! instance, collected in the [`GeometryLibrary`].
 
 use crate::bvh::simd::{NodeKernel, with_node_kernel};
-use crate::bvh::{BuildParams, Bvh, PADDING, TraversalStats};
+use crate::bvh::{BuildParams, Bvh, LeafVisit, PADDING, TraversalStats};
 use crate::math::{Aabb, Ray};
 use crate::mesh::{MeshError, TriangleMesh};
 use crate::triangle::{TriangleBlock, TriangleHit, WatertightRay};
@@ -104,24 +104,16 @@ impl Geometry {
         kernel: impl NodeKernel,
         ray: &Ray,
         stats: &mut TraversalStats,
-        mut accept: impl FnMut(u32, &TriangleHit) -> bool,
+        accept: impl FnMut(u32, &TriangleHit) -> bool,
     ) -> Option<GeometryHit> {
-        let wray = WatertightRay::new(ray);
-        let mut best = None;
-        kernel.traverse(&self.bvh, ray, stats, |first, count, mut t_max| {
-            self.for_possible_hits(&wray, first, count, |block, lane| {
-                if let Some(hit) = wray.intersect_lane(block, lane, t_max) {
-                    let triangle = block.triangles[lane];
-                    if accept(triangle, &hit) {
-                        best = Some(GeometryHit { triangle, hit });
-                        t_max = hit.t;
-                    }
-                }
-                false
-            });
-            (t_max, false)
-        });
-        best
+        let mut leaves = ClosestLeaves {
+            geometry: self,
+            wray: WatertightRay::new(ray),
+            accept,
+            best: None,
+        };
+        kernel.traverse(&self.bvh, ray, stats, &mut leaves);
+        leaves.best
     }
 
     /// True when some triangle that `accept` keeps is hit with `0 < t < ray.t_max`.
@@ -142,18 +134,16 @@ impl Geometry {
         kernel: impl NodeKernel,
         ray: &Ray,
         stats: &mut TraversalStats,
-        mut accept: impl FnMut(u32, &TriangleHit) -> bool,
+        accept: impl FnMut(u32, &TriangleHit) -> bool,
     ) -> bool {
-        let wray = WatertightRay::new(ray);
-        let mut found = false;
-        kernel.traverse(&self.bvh, ray, stats, |first, count, t_max| {
-            found = self.for_possible_hits(&wray, first, count, |block, lane| {
-                wray.intersect_lane(block, lane, t_max)
-                    .is_some_and(|hit| accept(block.triangles[lane], &hit))
-            });
-            (t_max, found)
-        });
-        found
+        let mut leaves = AnyLeaves {
+            geometry: self,
+            wray: WatertightRay::new(ray),
+            accept,
+            found: false,
+        };
+        kernel.traverse(&self.bvh, ray, stats, &mut leaves);
+        leaves.found
     }
 
     /// Calls `test(block, lane)` in slot order for the triangles of the leaf over slots
@@ -188,6 +178,63 @@ impl Geometry {
         self.mesh.memory_bytes()
             + self.bvh.memory_bytes()
             + self.blocks.capacity() * std::mem::size_of::<TriangleBlock>()
+    }
+}
+
+/// The closest-hit leaf test of a bottom level, inlined into the traversal loop.
+struct ClosestLeaves<'a, A> {
+    geometry: &'a Geometry,
+    wray: WatertightRay,
+    accept: A,
+    best: Option<GeometryHit>,
+}
+
+impl<A: FnMut(u32, &TriangleHit) -> bool> LeafVisit for ClosestLeaves<'_, A> {
+    #[inline(always)]
+    fn visit(&mut self, first: usize, count: usize, mut t_max: f32) -> (f32, bool) {
+        let Self {
+            geometry,
+            wray,
+            accept,
+            best,
+        } = self;
+        geometry.for_possible_hits(wray, first, count, |block, lane| {
+            if let Some(hit) = wray.intersect_lane(block, lane, t_max) {
+                let triangle = block.triangles[lane];
+                if accept(triangle, &hit) {
+                    *best = Some(GeometryHit { triangle, hit });
+                    t_max = hit.t;
+                }
+            }
+            false
+        });
+        (t_max, false)
+    }
+}
+
+/// The any-hit leaf test of a bottom level, inlined into the traversal loop: stops at
+/// the first triangle `accept` keeps.
+struct AnyLeaves<'a, A> {
+    geometry: &'a Geometry,
+    wray: WatertightRay,
+    accept: A,
+    found: bool,
+}
+
+impl<A: FnMut(u32, &TriangleHit) -> bool> LeafVisit for AnyLeaves<'_, A> {
+    #[inline(always)]
+    fn visit(&mut self, first: usize, count: usize, t_max: f32) -> (f32, bool) {
+        let Self {
+            geometry,
+            wray,
+            accept,
+            found,
+        } = self;
+        *found = geometry.for_possible_hits(wray, first, count, |block, lane| {
+            wray.intersect_lane(block, lane, t_max)
+                .is_some_and(|hit| accept(block.triangles[lane], &hit))
+        });
+        (t_max, *found)
     }
 }
 

@@ -79,23 +79,25 @@ impl WatertightRay {
     pub fn new(ray: &Ray) -> Self {
         let d = ray.direction;
         let ad = d.abs();
-        let kz = if ad.x >= ad.y && ad.x >= ad.z {
-            0
-        } else if ad.y >= ad.z {
-            1
-        } else {
-            2
-        };
-        let mut kx = (kz + 1) % 3;
-        let mut ky = (kx + 1) % 3;
+        // kz is the axis of the largest |component|, the first one on ties, picked without
+        // branches (every instance a ray enters prepares its own ray: branches on the
+        // direction mispredicted there).
+        let x_largest = (ad.x >= ad.y) & (ad.x >= ad.z);
+        let y_largest = !x_largest & (ad.y >= ad.z);
+        let kz = usize::from(y_largest) | (usize::from(!x_largest & !y_largest) << 1);
+        // Padded to four so that indices masked to two bits need no bounds check.
+        let along = [d.x, d.y, d.z, 0.0];
+        let from_origin = [ray.origin.x, ray.origin.y, ray.origin.z, 0.0];
+        let (next, after) = ([1, 2, 0, 0][kz], [2, 0, 1, 0][kz]);
         // Keep the winding of the sheared triangle independent of the direction's sign.
-        if d[kz] < 0.0 {
-            std::mem::swap(&mut kx, &mut ky);
-        }
-        let shear = Vec3A::new(d[kx] / d[kz], d[ky] / d[kz], 1.0 / d[kz]);
+        let negative = along[kz] < 0.0;
+        let kx = if negative { after } else { next };
+        let ky = if negative { next } else { after };
+        let dz = along[kz];
+        let shear = Vec3A::new(along[kx & 3], along[ky & 3], 1.0) / Vec3A::new(dz, dz, dz);
         Self {
             origin: ray.origin,
-            origin_permuted: [ray.origin[kx], ray.origin[ky], ray.origin[kz]],
+            origin_permuted: [from_origin[kx & 3], from_origin[ky & 3], from_origin[kz]],
             kx,
             ky,
             kz,
@@ -202,25 +204,27 @@ impl WatertightRay {
     }
 
     /// [`intersect_exact`](Self::intersect_exact) on lane `lane` of `block`, bit for bit.
-    #[inline(always)]
+    /// Out of line: a third of the lanes the f32 pass lets through get here, and inlined
+    /// into the traversal loop the f64 test crowded its registers.
+    #[inline(never)]
     pub fn intersect_lane(
         &self,
         block: &TriangleBlock,
         lane: usize,
         t_max: f32,
     ) -> Option<TriangleHit> {
-        let (kx, ky, kz) = (self.kx, self.ky, self.kz);
-        let [ox, oy, oz] = self.origin_permuted.map(f64::from);
+        let lane = lane & 3;
+        let origin = self.origin_permuted.map(f64::from);
+        let axes = [self.kx, self.ky, self.kz];
         // Relative coordinates in the ray's axis order (x, y, z = kx, ky, kz).
-        let corner = |c: usize| {
-            let p = &block.corners[c];
-            (
-                f64::from(p[kx][lane]) - ox,
-                f64::from(p[ky][lane]) - oy,
-                f64::from(p[kz][lane]) - oz,
-            )
-        };
-        self.exact_from_relative(corner(0), corner(1), corner(2), t_max)
+        let [a, b, c] = block.corners.each_ref().map(|corner| {
+            let [x, y, z] = [0, 1, 2].map(|i| {
+                let lanes: &[f32; 4] = corner[axes[i]].as_ref();
+                f64::from(lanes[lane]) - origin[i]
+            });
+            (x, y, z)
+        });
+        self.exact_from_relative(a, b, c, t_max)
     }
 
     /// The watertight test itself, in f64 after the f32 ray set-up.
@@ -458,6 +462,43 @@ mod tests {
             rejected as f32 > 0.95 * misses as f32,
             "{rejected} of {misses} misses decided in f32"
         );
+    }
+
+    #[test]
+    fn the_axis_order_is_the_largest_component_first_on_ties_and_keeps_the_winding() {
+        let values = [0.0, -0.0, 1.0, -1.0, 0.5, -0.5, 2.0, -2.0, 1e-40, f32::NAN];
+        let mut checked = 0;
+        for &x in &values {
+            for &y in &values {
+                for &z in &values {
+                    let d = Vec3A::new(x, y, z);
+                    let ray = Ray::new(Vec3A::new(1.0, 2.0, 3.0), d);
+                    let w = WatertightRay::new(&ray);
+                    // The textbook choice, with branches.
+                    let a = d.abs();
+                    let kz = if a.x >= a.y && a.x >= a.z {
+                        0
+                    } else if a.y >= a.z {
+                        1
+                    } else {
+                        2
+                    };
+                    let (mut kx, mut ky) = ((kz + 1) % 3, (kz + 2) % 3);
+                    if d[kz] < 0.0 {
+                        std::mem::swap(&mut kx, &mut ky);
+                    }
+                    assert_eq!((w.kx, w.ky, w.kz), (kx, ky, kz), "direction {d}");
+                    let o = ray.origin;
+                    assert_eq!(w.origin_permuted, [o[kx], o[ky], o[kz]]);
+                    let shear = [d[kx] / d[kz], d[ky] / d[kz], 1.0 / d[kz]];
+                    for (got, want) in w.shear.to_array().into_iter().zip(shear) {
+                        assert!(got.to_bits() == want.to_bits() || (got.is_nan() && want.is_nan()));
+                    }
+                    checked += 1;
+                }
+            }
+        }
+        assert_eq!(checked, 1000);
     }
 
     #[test]

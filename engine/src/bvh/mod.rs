@@ -14,7 +14,7 @@ mod wide;
 pub use build::BuildParams;
 pub use node::BvhNode;
 pub use refit::RefitError;
-pub use traverse::{NodeRay, TraversalStats};
+pub use traverse::{LeafVisit, NodeRay, TraversalStats};
 pub use validate::BvhReport;
 pub use wide::{WIDTH, WideNode};
 

@@ -4,7 +4,7 @@
 //! `#[target_feature]` functions, allowed by an [`Avx2`] value that exists only when the
 //! CPU has AVX2.
 
-use super::traverse::{FAR_SCALE, NEAR_SCALE, NodeRay};
+use super::traverse::{FAR_SCALE, LeafVisit, NEAR_SCALE, NodeRay};
 use super::{Bvh, TraversalStats, WIDTH, WideNode};
 use crate::math::Ray;
 use glam::{BVec4A, Vec4};
@@ -34,14 +34,14 @@ pub(crate) use with_node_kernel;
 /// built on them.
 pub trait NodeKernel: Copy {
     /// [`Bvh::traverse_with`] on this kernel: with AVX2, one function compiled for it,
-    /// so the box tests inline into the loop (and the caller's primitive tests with it).
-    /// `visit(first, count, t_max) -> (new t_max, stop)` tests one leaf's slots.
+    /// so the box tests inline into the loop (and the caller's leaf test, when it is a
+    /// [`LeafVisit`] with an `#[inline(always)]` method).
     fn traverse(
         self,
         bvh: &Bvh,
         ray: &Ray,
         stats: &mut TraversalStats,
-        visit: impl FnMut(usize, usize, f32) -> (f32, bool),
+        leaves: &mut impl LeafVisit,
     );
 
     /// Entry distances of the children and a bitmask of the lanes whose box the ray
@@ -60,9 +60,9 @@ impl NodeKernel for Portable {
         bvh: &Bvh,
         ray: &Ray,
         stats: &mut TraversalStats,
-        visit: impl FnMut(usize, usize, f32) -> (f32, bool),
+        leaves: &mut impl LeafVisit,
     ) {
-        bvh.traverse_with(self, ray, stats, visit)
+        bvh.traverse_with(self, ray, stats, leaves)
     }
 
     #[inline(always)]
@@ -133,7 +133,7 @@ pub fn prefetch_node(_node: &WideNode) {}
               storing 256-bit registers, is unsafe; an Avx2 value proves the CPU has it"
 )]
 mod avx2 {
-    use super::{FAR_SCALE, NEAR_SCALE, NodeKernel, NodeRay, WIDTH, WideNode};
+    use super::{FAR_SCALE, LeafVisit, NEAR_SCALE, NodeKernel, NodeRay, WIDTH, WideNode};
     use crate::bvh::{Bvh, TraversalStats};
     use crate::math::Ray;
     use std::arch::x86_64::*;
@@ -182,13 +182,8 @@ mod avx2 {
     /// the instruction cache (spilled ray constants, a frame 3–8 % slower).
     #[target_feature(enable = "avx2")]
     #[inline(never)]
-    fn traverse(
-        bvh: &Bvh,
-        ray: &Ray,
-        stats: &mut TraversalStats,
-        visit: impl FnMut(usize, usize, f32) -> (f32, bool),
-    ) {
-        bvh.traverse_with(Avx2 { _detected: () }, ray, stats, visit)
+    fn traverse(bvh: &Bvh, ray: &Ray, stats: &mut TraversalStats, leaves: &mut impl LeafVisit) {
+        bvh.traverse_with(Avx2 { _detected: () }, ray, stats, leaves)
     }
 
     impl NodeKernel for Avx2 {
@@ -198,10 +193,10 @@ mod avx2 {
             bvh: &Bvh,
             ray: &Ray,
             stats: &mut TraversalStats,
-            visit: impl FnMut(usize, usize, f32) -> (f32, bool),
+            leaves: &mut impl LeafVisit,
         ) {
             // SAFETY: `self` exists only when `detect` found AVX2 on this CPU.
-            unsafe { traverse(bvh, ray, stats, visit) }
+            unsafe { traverse(bvh, ray, stats, leaves) }
         }
 
         #[inline(always)]

@@ -113,6 +113,23 @@ impl NodeRay {
     }
 }
 
+/// What a traversal does at each leaf it reaches: `visit(first, count, t_max) -> (new
+/// t_max, stop)` tests the leaf's slots `first .. first + count`. Closures implement it;
+/// a type with an `#[inline(always)]` method gets its leaf test inlined into the
+/// traversal loop (a large closure stays a call, and outside the AVX2 function it is
+/// compiled without AVX).
+pub trait LeafVisit {
+    /// Tests one leaf; returns the new `t_max` and whether to stop.
+    fn visit(&mut self, first: usize, count: usize, t_max: f32) -> (f32, bool);
+}
+
+impl<F: FnMut(usize, usize, f32) -> (f32, bool)> LeafVisit for F {
+    #[inline(always)]
+    fn visit(&mut self, first: usize, count: usize, t_max: f32) -> (f32, bool) {
+        self(first, count, t_max)
+    }
+}
+
 /// A pending subtree: a wide node (`count == 0`) or a leaf's slot range, with its entry
 /// distance.
 #[derive(Clone, Copy, Debug, Default)]
@@ -191,7 +208,7 @@ impl Bvh {
         mut test: impl FnMut(usize, f32) -> Option<f32>,
     ) -> f32 {
         let mut t_max = ray.t_max;
-        kernel.traverse(self, ray, stats, |first, count, _| {
+        kernel.traverse(self, ray, stats, &mut |first, count, _| {
             for slot in first..first + count {
                 if let Some(hit_t) = test(slot, t_max) {
                     t_max = hit_t;
@@ -223,7 +240,7 @@ impl Bvh {
         mut test: impl FnMut(usize, f32) -> bool,
     ) -> bool {
         let mut found = false;
-        kernel.traverse(self, ray, stats, |first, count, t| {
+        kernel.traverse(self, ray, stats, &mut |first, count, t| {
             found = (first..first + count).any(|slot| test(slot, t));
             (t, found)
         });
@@ -241,16 +258,15 @@ impl Bvh {
         }
     }
 
-    /// The shared loop over the wide tree: `visit(first, count, t_max) -> (new t_max,
-    /// stop)` for each leaf the ray reaches (slots `first .. first + count`), with the
-    /// box tests of `kernel`.
+    /// The shared loop over the wide tree: [`LeafVisit::visit`] for each leaf the ray
+    /// reaches, with the box tests of `kernel`.
     #[inline(always)]
     pub(super) fn traverse_with(
         &self,
         kernel: impl NodeKernel,
         ray: &Ray,
         stats: &mut TraversalStats,
-        mut visit: impl FnMut(usize, usize, f32) -> (f32, bool),
+        leaves: &mut impl LeafVisit,
     ) {
         if self.wide.is_empty() {
             return;
@@ -271,7 +287,7 @@ impl Bvh {
         'walk: loop {
             if current.count > 0 {
                 primitives += u64::from(current.count);
-                let (t, stop) = visit(current.first as usize, current.count as usize, t_max);
+                let (t, stop) = leaves.visit(current.first as usize, current.count as usize, t_max);
                 t_max = t;
                 if stop {
                     break 'walk;
