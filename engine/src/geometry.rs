@@ -107,6 +107,7 @@ impl Geometry {
         accept: impl FnMut(u32, &TriangleHit) -> bool,
     ) -> Option<GeometryHit> {
         let mut leaves = ClosestLeaves {
+            kernel,
             geometry: self,
             wray: WatertightRay::new(ray),
             accept,
@@ -137,6 +138,7 @@ impl Geometry {
         accept: impl FnMut(u32, &TriangleHit) -> bool,
     ) -> bool {
         let mut leaves = AnyLeaves {
+            kernel,
             geometry: self,
             wray: WatertightRay::new(ray),
             accept,
@@ -147,11 +149,12 @@ impl Geometry {
     }
 
     /// Calls `test(block, lane)` in slot order for the triangles of the leaf over slots
-    /// `first .. first + count` that the ray may hit (the f32 pass, four at a time, has
-    /// ruled out the rest) until it returns true; returns whether it did.
+    /// `first .. first + count` whose edge-sign check passes (four at a time; the rest
+    /// the exact test would reject) until it returns true; returns whether it did.
     #[inline(always)]
     fn for_possible_hits(
         &self,
+        kernel: impl NodeKernel,
         wray: &WatertightRay,
         first: usize,
         count: usize,
@@ -160,7 +163,7 @@ impl Geometry {
         let start = first / TRIANGLE_BLOCK;
         let mut remaining = count;
         for block in &self.blocks[start..start + count.div_ceil(TRIANGLE_BLOCK)] {
-            let mut possible = wray.possible_hits(block, remaining.min(TRIANGLE_BLOCK));
+            let mut possible = kernel.possible_hits(wray, block, remaining.min(TRIANGLE_BLOCK));
             remaining = remaining.saturating_sub(TRIANGLE_BLOCK);
             while possible != 0 {
                 let lane = possible.trailing_zeros() as usize;
@@ -182,23 +185,25 @@ impl Geometry {
 }
 
 /// The closest-hit leaf test of a bottom level, inlined into the traversal loop.
-struct ClosestLeaves<'a, A> {
+struct ClosestLeaves<'a, K, A> {
+    kernel: K,
     geometry: &'a Geometry,
     wray: WatertightRay,
     accept: A,
     best: Option<GeometryHit>,
 }
 
-impl<A: FnMut(u32, &TriangleHit) -> bool> LeafVisit for ClosestLeaves<'_, A> {
+impl<K: NodeKernel, A: FnMut(u32, &TriangleHit) -> bool> LeafVisit for ClosestLeaves<'_, K, A> {
     #[inline(always)]
     fn visit(&mut self, first: usize, count: usize, mut t_max: f32) -> (f32, bool) {
         let Self {
+            kernel,
             geometry,
             wray,
             accept,
             best,
         } = self;
-        geometry.for_possible_hits(wray, first, count, |block, lane| {
+        geometry.for_possible_hits(*kernel, wray, first, count, |block, lane| {
             if let Some(hit) = wray.intersect_lane(block, lane, t_max) {
                 let triangle = block.triangles[lane];
                 if accept(triangle, &hit) {
@@ -214,23 +219,25 @@ impl<A: FnMut(u32, &TriangleHit) -> bool> LeafVisit for ClosestLeaves<'_, A> {
 
 /// The any-hit leaf test of a bottom level, inlined into the traversal loop: stops at
 /// the first triangle `accept` keeps.
-struct AnyLeaves<'a, A> {
+struct AnyLeaves<'a, K, A> {
+    kernel: K,
     geometry: &'a Geometry,
     wray: WatertightRay,
     accept: A,
     found: bool,
 }
 
-impl<A: FnMut(u32, &TriangleHit) -> bool> LeafVisit for AnyLeaves<'_, A> {
+impl<K: NodeKernel, A: FnMut(u32, &TriangleHit) -> bool> LeafVisit for AnyLeaves<'_, K, A> {
     #[inline(always)]
     fn visit(&mut self, first: usize, count: usize, t_max: f32) -> (f32, bool) {
         let Self {
+            kernel,
             geometry,
             wray,
             accept,
             found,
         } = self;
-        *found = geometry.for_possible_hits(wray, first, count, |block, lane| {
+        *found = geometry.for_possible_hits(*kernel, wray, first, count, |block, lane| {
             wray.intersect_lane(block, lane, t_max)
                 .is_some_and(|hit| accept(block.triangles[lane], &hit))
         });

@@ -163,49 +163,70 @@ impl WatertightRay {
         e.cmplt(Vec3A::splat(-bound)).any() && e.cmpgt(Vec3A::splat(bound)).any()
     }
 
-    /// The f32 pass of [`misses_certainly`](Self::misses_certainly) on the four lanes of
-    /// `block` at once, one triangle per SIMD lane: bit `i` is set when lane `i` (of the
-    /// first `lanes`) may be hit and needs [`intersect_lane`](Self::intersect_lane).
-    /// Every lane runs the scalar pass's operations in the same order, so the two decide
-    /// alike, bit for bit. The block's coordinates are read in the ray's axis order
-    /// straight from memory: no transposes, no shuffles.
-    #[inline(always)]
+    /// The first step of [`intersect_exact`](Self::intersect_exact) on the four lanes of
+    /// `block`: bit `i` is set when lane `i` (of the first `lanes`) passes the exact
+    /// test's edge-sign check, computed with its f64 operations in the same order, so a
+    /// cleared bit is a lane the exact test rejects. Only set lanes need
+    /// [`intersect_lane`](Self::intersect_lane). There is no error margin leaving lanes
+    /// undecided, as in the f32 pass of [`misses_certainly`](Self::misses_certainly).
+    /// This is the portable reference; traversal runs the node kernel's version
+    /// (`NodeKernel::possible_hits`), four lanes per register with AVX2, bit for bit the
+    /// same. (Checking there also that the hit lies ahead, before `t_max`, halved the
+    /// lanes sent on but cost more per block than it saved: +1.1 % instructions.)
     pub fn possible_hits(&self, block: &TriangleBlock, lanes: usize) -> u32 {
-        let (kx, ky, kz) = (self.kx, self.ky, self.kz);
-        let [ox, oy, oz] = self.origin_permuted.map(Vec4::splat);
-        let (sx, sy) = (Vec4::splat(self.shear.x), Vec4::splat(self.shear.y));
-        // Sheared x and y of a corner relative to the origin, and their magnitudes
-        // (|x part| + |shear part|) for the error bound.
-        let corner = |c: usize| {
-            let p = &block.corners[c];
-            let (rx, ry, rz) = (p[kx] - ox, p[ky] - oy, p[kz] - oz);
-            let (zx, zy) = (sx * rz, sy * rz);
-            (rx - zx, ry - zy, rx.abs() + zx.abs(), ry.abs() + zy.abs())
-        };
-        let (ax, ay, amx, amy) = corner(0);
-        let (bx, by, bmx, bmy) = corner(1);
-        let (cx, cy, cmx, cmy) = corner(2);
-        let e0 = bx * cy - by * cx;
-        let e1 = cx * ay - cy * ax;
-        let e2 = ax * by - ay * bx;
-        let magnitude_x = amx.max(bmx).max(cmx);
-        let magnitude_y = amy.max(bmy).max(cmy);
-        let bound = Vec4::splat(32.0 * f32::EPSILON * 0.5) * magnitude_x * magnitude_y;
-        let reliable = bound.is_finite_mask()
-            & bound.cmpge(Vec4::splat(MIN_RELIABLE_BOUND))
-            & e0.is_finite_mask()
-            & e1.is_finite_mask()
-            & e2.is_finite_mask();
-        let (low, high) = (-bound, bound);
-        let below = e0.cmplt(low) | e1.cmplt(low) | e2.cmplt(low);
-        let above = e0.cmpgt(high) | e1.cmpgt(high) | e2.cmpgt(high);
-        let certain_miss = (reliable & below & above).bitmask();
-        !certain_miss & ((1 << lanes) - 1)
+        let mut mask = 0;
+        for lane in 0..lanes.min(4) {
+            let [a, b, c] = self.relative_corners(block, lane);
+            let (ax, ay) = self.sheared_xy(a);
+            let (bx, by) = self.sheared_xy(b);
+            let (cx, cy) = self.sheared_xy(c);
+            let (e0, e1, e2) = (bx * cy - by * cx, cx * ay - cy * ax, ax * by - ay * bx);
+            let outside = (e0 < 0.0 || e1 < 0.0 || e2 < 0.0) && (e0 > 0.0 || e1 > 0.0 || e2 > 0.0);
+            mask |= u32::from(!outside) << lane;
+        }
+        mask
+    }
+
+    /// What the block check needs: the axis order `(kx, ky, kz)`, the origin in that
+    /// order and the x and y shear constants.
+    #[inline(always)]
+    pub(crate) fn block_setup(&self) -> ([usize; 3], [f32; 3], [f32; 2]) {
+        (
+            [self.kx, self.ky, self.kz],
+            self.origin_permuted,
+            [self.shear.x, self.shear.y],
+        )
+    }
+
+    /// Corners of lane `lane` of `block` relative to the origin, in the ray's axis order
+    /// (x, y, z = kx, ky, kz), in f64.
+    #[inline(always)]
+    fn relative_corners(&self, block: &TriangleBlock, lane: usize) -> [(f64, f64, f64); 3] {
+        let lane = lane & 3;
+        let origin = self.origin_permuted.map(f64::from);
+        let axes = [self.kx, self.ky, self.kz];
+        block.corners.each_ref().map(|corner| {
+            let [x, y, z] = [0, 1, 2].map(|i| {
+                let lanes: &[f32; 4] = corner[axes[i]].as_ref();
+                f64::from(lanes[lane]) - origin[i]
+            });
+            (x, y, z)
+        })
+    }
+
+    /// The sheared x and y of a corner relative to the origin (the exact test's first
+    /// step).
+    #[inline(always)]
+    fn sheared_xy(&self, (x, y, z): (f64, f64, f64)) -> (f64, f64) {
+        (
+            x - f64::from(self.shear.x) * z,
+            y - f64::from(self.shear.y) * z,
+        )
     }
 
     /// [`intersect_exact`](Self::intersect_exact) on lane `lane` of `block`, bit for bit.
-    /// Out of line: a third of the lanes the f32 pass lets through get here, and inlined
-    /// into the traversal loop the f64 test crowded its registers.
+    /// Out of line: only lanes that [`possible_hits`](Self::possible_hits) lets through
+    /// get here, and inlined into the traversal loop the f64 test crowded its registers.
     #[inline(never)]
     pub fn intersect_lane(
         &self,
@@ -213,17 +234,7 @@ impl WatertightRay {
         lane: usize,
         t_max: f32,
     ) -> Option<TriangleHit> {
-        let lane = lane & 3;
-        let origin = self.origin_permuted.map(f64::from);
-        let axes = [self.kx, self.ky, self.kz];
-        // Relative coordinates in the ray's axis order (x, y, z = kx, ky, kz).
-        let [a, b, c] = block.corners.each_ref().map(|corner| {
-            let [x, y, z] = [0, 1, 2].map(|i| {
-                let lanes: &[f32; 4] = corner[axes[i]].as_ref();
-                f64::from(lanes[lane]) - origin[i]
-            });
-            (x, y, z)
-        });
+        let [a, b, c] = self.relative_corners(block, lane);
         self.exact_from_relative(a, b, c, t_max)
     }
 
@@ -254,17 +265,10 @@ impl WatertightRay {
         c: (f64, f64, f64),
         t_max: f32,
     ) -> Option<TriangleHit> {
-        let (sx, sy, sz) = (
-            f64::from(self.shear.x),
-            f64::from(self.shear.y),
-            f64::from(self.shear.z),
-        );
-        let ax = a.0 - sx * a.2;
-        let ay = a.1 - sy * a.2;
-        let bx = b.0 - sx * b.2;
-        let by = b.1 - sy * b.2;
-        let cx = c.0 - sx * c.2;
-        let cy = c.1 - sy * c.2;
+        let sz = f64::from(self.shear.z);
+        let (ax, ay) = self.sheared_xy(a);
+        let (bx, by) = self.sheared_xy(b);
+        let (cx, cy) = self.sheared_xy(c);
         let e0 = bx * cy - by * cx;
         let e1 = cx * ay - cy * ax;
         let e2 = ax * by - ay * bx;
@@ -553,13 +557,18 @@ mod tests {
             for (lane, [p0, p1, p2]) in triangles.iter().enumerate() {
                 assert_eq!(block.triangle(lane), [*p0, *p1, *p2]);
                 assert_eq!(block.triangles[lane], lane as u32 * 7);
-                let scalar = !watertight.misses_certainly(*p0, *p1, *p2);
-                assert_eq!(
-                    mask >> lane & 1 == 1,
-                    scalar,
-                    "lane {lane} of {triangles:?}, {ray:?}"
+                let passed = mask >> lane & 1 == 1;
+                // The block check decides with the exact test's f64 edge signs: never
+                // looser than the f32 pass, which leaves a margin for its rounding.
+                assert!(
+                    !passed || !watertight.misses_certainly(*p0, *p1, *p2),
+                    "lane {lane} passed what the f32 pass rejects: {triangles:?}, {ray:?}"
                 );
                 let exact = watertight.intersect_exact(*p0, *p1, *p2, t_max);
+                assert!(
+                    passed || exact.is_none(),
+                    "lane {lane} rejected a hit: {triangles:?}, {ray:?}"
+                );
                 let from_block = watertight.intersect_lane(&block, lane, t_max);
                 assert_eq!(
                     exact.map(|h| (h.t.to_bits(), h.barycentrics.to_array().map(f32::to_bits))),
@@ -567,7 +576,7 @@ mod tests {
                         .map(|h| (h.t.to_bits(), h.barycentrics.to_array().map(f32::to_bits))),
                     "lane {lane} of {triangles:?}, {ray:?}"
                 );
-                possible += u32::from(scalar);
+                possible += u32::from(passed);
                 hits += u32::from(exact.is_some());
                 lanes += 1;
             }

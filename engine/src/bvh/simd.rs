@@ -7,6 +7,7 @@
 use super::traverse::{FAR_SCALE, LeafVisit, NEAR_SCALE, NodeRay};
 use super::{Bvh, TraversalStats, WIDTH, WideNode};
 use crate::math::Ray;
+use crate::triangle::{TriangleBlock, WatertightRay};
 use glam::{BVec4A, Vec4};
 
 /// Evaluates `$body` with `$kernel` bound to the best [`NodeKernel`] of this CPU.
@@ -47,6 +48,10 @@ pub trait NodeKernel: Copy {
     /// Entry distances of the children and a bitmask of the lanes whose box the ray
     /// enters before `t_max` (bit `i` for lane `i`).
     fn hit_children(self, ray: &NodeRay, node: &WideNode, t_max: f32) -> ([f32; WIDTH], u32);
+
+    /// [`WatertightRay::possible_hits`] on this kernel, bit for bit: the lanes of `block`
+    /// (of the first `lanes`) that pass the exact test's edge-sign check.
+    fn possible_hits(self, ray: &WatertightRay, block: &TriangleBlock, lanes: usize) -> u32;
 }
 
 /// The kernel for any CPU: two four-lane halves.
@@ -75,6 +80,11 @@ impl NodeKernel for Portable {
             mask |= lane_mask << (half * 4);
         }
         (t, mask)
+    }
+
+    #[inline(always)]
+    fn possible_hits(self, ray: &WatertightRay, block: &TriangleBlock, lanes: usize) -> u32 {
+        ray.possible_hits(block, lanes)
     }
 }
 
@@ -136,6 +146,8 @@ mod avx2 {
     use super::{FAR_SCALE, LeafVisit, NEAR_SCALE, NodeKernel, NodeRay, WIDTH, WideNode};
     use crate::bvh::{Bvh, TraversalStats};
     use crate::math::Ray;
+    use crate::triangle::{TriangleBlock, WatertightRay};
+    use glam::Vec4;
     use std::arch::x86_64::*;
     use std::sync::OnceLock;
 
@@ -204,6 +216,50 @@ mod avx2 {
             // SAFETY: `self` exists only when `detect` found AVX2 on this CPU.
             unsafe { hit_children(ray, node, t_max) }
         }
+
+        #[inline(always)]
+        fn possible_hits(self, ray: &WatertightRay, block: &TriangleBlock, lanes: usize) -> u32 {
+            // SAFETY: `self` exists only when `detect` found AVX2 on this CPU.
+            unsafe { possible_hits(ray, block, lanes) }
+        }
+    }
+
+    /// The portable block check's f64 operations in the same order, the four lanes of the
+    /// block in one register per value.
+    #[target_feature(enable = "avx2")]
+    #[inline]
+    fn possible_hits(ray: &WatertightRay, block: &TriangleBlock, lanes: usize) -> u32 {
+        let ([kx, ky, kz], origin, [sx, sy]) = ray.block_setup();
+        let [ox, oy, oz] = origin.map(|o| _mm256_set1_pd(f64::from(o)));
+        let (sx, sy) = (_mm256_set1_pd(f64::from(sx)), _mm256_set1_pd(f64::from(sy)));
+        // SAFETY: a Vec4 holds four f32.
+        let load =
+            |v: &Vec4| unsafe { _mm256_cvtps_pd(_mm_loadu_ps(std::ptr::from_ref(v).cast())) };
+        let sheared = |c: usize| {
+            let p = &block.corners[c];
+            let (rx, ry, rz) = (
+                _mm256_sub_pd(load(&p[kx]), ox),
+                _mm256_sub_pd(load(&p[ky]), oy),
+                _mm256_sub_pd(load(&p[kz]), oz),
+            );
+            (
+                _mm256_sub_pd(rx, _mm256_mul_pd(sx, rz)),
+                _mm256_sub_pd(ry, _mm256_mul_pd(sy, rz)),
+            )
+        };
+        let (ax, ay) = sheared(0);
+        let (bx, by) = sheared(1);
+        let (cx, cy) = sheared(2);
+        let e0 = _mm256_sub_pd(_mm256_mul_pd(bx, cy), _mm256_mul_pd(by, cx));
+        let e1 = _mm256_sub_pd(_mm256_mul_pd(cx, ay), _mm256_mul_pd(cy, ax));
+        let e2 = _mm256_sub_pd(_mm256_mul_pd(ax, by), _mm256_mul_pd(ay, bx));
+        let zero = _mm256_setzero_pd();
+        let below = |e: __m256d| _mm256_cmp_pd::<_CMP_LT_OQ>(e, zero);
+        let above = |e: __m256d| _mm256_cmp_pd::<_CMP_GT_OQ>(e, zero);
+        let negative = _mm256_or_pd(_mm256_or_pd(below(e0), below(e1)), below(e2));
+        let positive = _mm256_or_pd(_mm256_or_pd(above(e0), above(e1)), above(e2));
+        let outside = _mm256_movemask_pd(_mm256_and_pd(negative, positive)) as u32;
+        !outside & ((1 << lanes.min(4)) - 1)
     }
 
     /// The portable kernel's operations in the same order, eight lanes at once.
@@ -337,5 +393,69 @@ mod tests {
             hits += m_a.count_ones();
         }
         assert!(hits > 1000, "too few boxes hit ({hits}) to compare");
+    }
+
+    #[cfg(target_arch = "x86_64")]
+    #[test]
+    fn avx2_and_portable_block_checks_give_the_same_bits() {
+        let Some(avx2) = Avx2::on_this_cpu() else {
+            panic!("this test needs an AVX2 machine (CI has one)");
+        };
+        let mut state = 11;
+        let specials = [0.0, -0.0, 1e-40, f32::INFINITY, f32::NAN, 1e30, -1e-30];
+        let (mut passed, mut compared) = (0, 0);
+        for i in 0..20_000 {
+            let scale = 10f32.powi(i % 5 - 2);
+            let mut corner =
+                || glam::Vec3A::from([0.0; 3].map(|_: f32| (uniform(&mut state) - 0.5) * scale));
+            let count = 1 + i as usize % 4;
+            let mut triangles: Vec<(u32, [glam::Vec3A; 3])> = (0..count)
+                .map(|t| (t as u32, [corner(), corner(), corner()]))
+                .collect();
+            if i % 7 == 0 {
+                // Degenerate: an edge function is exactly zero.
+                let last = triangles.len() - 1;
+                triangles[last].1[2] = triangles[last].1[1];
+            }
+            if i % 17 == 0 {
+                triangles[0].1[1].y = specials[(i / 17) as usize % specials.len()];
+            }
+            let mut origin = [0.0; 3].map(|_: f32| (uniform(&mut state) - 0.5) * 2.0 * scale);
+            let on_edge = i % 11 == 0;
+            if on_edge {
+                // An axis-parallel ray through the edge p0 p1 (made parallel to y): an
+                // edge function is exactly zero and the others agree in sign.
+                let [p0, p1, _] = &mut triangles[0].1;
+                p1.x = p0.x;
+                origin[0] = p0.x;
+                origin[1] = 0.5 * (p0.y + p1.y);
+            }
+            let block = TriangleBlock::new(&triangles);
+            // Aimed near the first triangle, so lanes pass and fail in about equal shares.
+            let [p0, p1, p2] = triangles[0].1;
+            let noise = [0.0; 3].map(|_: f32| (uniform(&mut state) - 0.5) * scale * 0.6);
+            let target = (p0 + p1 + p2) / 3.0 + glam::Vec3A::from(noise);
+            let mut direction = (target - glam::Vec3A::from(origin)).to_array();
+            if i % 5 == 0 {
+                direction[i as usize % 3] = specials[(i / 5) as usize % specials.len()];
+            }
+            if on_edge {
+                direction = [0.0, 0.0, if i % 2 == 0 { 1.0 } else { -1.0 }];
+            }
+            let ray = crate::math::Ray::new(origin.into(), direction.into());
+            if !ray.direction.is_finite() || ray.direction == glam::Vec3A::ZERO {
+                continue;
+            }
+            let watertight = WatertightRay::new(&ray);
+            let a = avx2.possible_hits(&watertight, &block, count);
+            let p = Portable.possible_hits(&watertight, &block, count);
+            assert_eq!(a, p, "block {triangles:?}, {ray:?}");
+            passed += a.count_ones();
+            compared += count as u32;
+        }
+        assert!(
+            passed > compared / 20 && passed < compared * 19 / 20,
+            "{passed} of {compared} lanes passed: too one-sided to compare"
+        );
     }
 }
