@@ -203,15 +203,17 @@ impl WatertightRay {
     #[inline(always)]
     fn relative_corners(&self, block: &TriangleBlock, lane: usize) -> [(f64, f64, f64); 3] {
         let lane = lane & 3;
-        let origin = self.origin_permuted.map(f64::from);
-        let axes = [self.kx, self.ky, self.kz];
-        block.corners.each_ref().map(|corner| {
-            let [x, y, z] = [0, 1, 2].map(|i| {
-                let lanes: &[f32; 4] = corner[axes[i]].as_ref();
-                f64::from(lanes[lane]) - origin[i]
-            });
-            (x, y, z)
-        })
+        let [ox, oy, oz] = self.origin_permuted.map(f64::from);
+        // Plain indexing: array `map` here stayed an out-of-line call per lane test.
+        let relative = |c: usize| {
+            let corner = &block.corners[c];
+            let along = |axis: usize| -> f64 {
+                let lanes: &[f32; 4] = corner[axis].as_ref();
+                f64::from(lanes[lane])
+            };
+            (along(self.kx) - ox, along(self.ky) - oy, along(self.kz) - oz)
+        };
+        [relative(0), relative(1), relative(2)]
     }
 
     /// The sheared x and y of a corner relative to the origin (the exact test's first
