@@ -177,12 +177,8 @@ impl WatertightRay {
         let mut mask = 0;
         for lane in 0..lanes.min(4) {
             let [a, b, c] = self.relative_corners(block, lane);
-            let (ax, ay) = self.sheared_xy(a);
-            let (bx, by) = self.sheared_xy(b);
-            let (cx, cy) = self.sheared_xy(c);
-            let (e0, e1, e2) = (bx * cy - by * cx, cx * ay - cy * ax, ax * by - ay * bx);
-            let outside = (e0 < 0.0 || e1 < 0.0 || e2 < 0.0) && (e0 > 0.0 || e1 > 0.0 || e2 > 0.0);
-            mask |= u32::from(!outside) << lane;
+            let edges = edge_functions(self.sheared_xy(a), self.sheared_xy(b), self.sheared_xy(c));
+            mask |= u32::from(!passes_outside(edges)) << lane;
         }
         mask
     }
@@ -211,7 +207,11 @@ impl WatertightRay {
                 let lanes: &[f32; 4] = corner[axis].as_ref();
                 f64::from(lanes[lane])
             };
-            (along(self.kx) - ox, along(self.ky) - oy, along(self.kz) - oz)
+            (
+                along(self.kx) - ox,
+                along(self.ky) - oy,
+                along(self.kz) - oz,
+            )
         };
         [relative(0), relative(1), relative(2)]
     }
@@ -271,10 +271,8 @@ impl WatertightRay {
         let (ax, ay) = self.sheared_xy(a);
         let (bx, by) = self.sheared_xy(b);
         let (cx, cy) = self.sheared_xy(c);
-        let e0 = bx * cy - by * cx;
-        let e1 = cx * ay - cy * ax;
-        let e2 = ax * by - ay * bx;
-        if (e0 < 0.0 || e1 < 0.0 || e2 < 0.0) && (e0 > 0.0 || e1 > 0.0 || e2 > 0.0) {
+        let (e0, e1, e2) = edge_functions((ax, ay), (bx, by), (cx, cy));
+        if passes_outside((e0, e1, e2)) {
             return None;
         }
         let det = e0 + e1 + e2;
@@ -325,6 +323,24 @@ impl WatertightRay {
         }
         Some(TriangleHit { t, barycentrics })
     }
+}
+
+/// The edge functions `(e0, e1, e2) = (b_x c_y − b_y c_x, c_x a_y − c_y a_x, a_x b_y −
+/// a_y b_x)` of the sheared corners `a`, `b`, `c` (x, y).
+#[inline(always)]
+fn edge_functions(
+    (ax, ay): (f64, f64),
+    (bx, by): (f64, f64),
+    (cx, cy): (f64, f64),
+) -> (f64, f64, f64) {
+    (bx * cy - by * cx, cx * ay - cy * ax, ax * by - ay * bx)
+}
+
+/// True when edge functions of both signs show the ray passing outside the triangle
+/// (zeros, on an edge, count as inside).
+#[inline(always)]
+fn passes_outside((e0, e1, e2): (f64, f64, f64)) -> bool {
+    (e0 < 0.0 || e1 < 0.0 || e2 < 0.0) && (e0 > 0.0 || e1 > 0.0 || e2 > 0.0)
 }
 
 /// Below this error bound (2⁻¹⁰⁰) the f32 products may have underflowed: the f32 pass
