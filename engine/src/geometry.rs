@@ -109,7 +109,8 @@ impl Geometry {
         let mut leaves = ClosestLeaves {
             kernel,
             geometry: self,
-            wray: WatertightRay::new(ray),
+            ray,
+            wray: None,
             accept,
             best: None,
         };
@@ -140,7 +141,8 @@ impl Geometry {
         let mut leaves = AnyLeaves {
             kernel,
             geometry: self,
-            wray: WatertightRay::new(ray),
+            ray,
+            wray: None,
             accept,
             found: false,
         };
@@ -188,7 +190,8 @@ impl Geometry {
 struct ClosestLeaves<'a, K, A> {
     kernel: K,
     geometry: &'a Geometry,
-    wray: WatertightRay,
+    ray: &'a Ray,
+    wray: Option<WatertightRay>,
     accept: A,
     best: Option<GeometryHit>,
 }
@@ -199,10 +202,12 @@ impl<K: NodeKernel, A: FnMut(u32, &TriangleHit) -> bool> LeafVisit for ClosestLe
         let Self {
             kernel,
             geometry,
+            ray,
             wray,
             accept,
             best,
         } = self;
+        let wray = &*wray.get_or_insert_with(|| WatertightRay::new(ray));
         geometry.for_possible_hits(*kernel, wray, first, count, |block, lane| {
             if let Some(hit) = wray.intersect_lane(block, lane, t_max) {
                 let triangle = block.triangles[lane];
@@ -222,7 +227,8 @@ impl<K: NodeKernel, A: FnMut(u32, &TriangleHit) -> bool> LeafVisit for ClosestLe
 struct AnyLeaves<'a, K, A> {
     kernel: K,
     geometry: &'a Geometry,
-    wray: WatertightRay,
+    ray: &'a Ray,
+    wray: Option<WatertightRay>,
     accept: A,
     found: bool,
 }
@@ -233,10 +239,12 @@ impl<K: NodeKernel, A: FnMut(u32, &TriangleHit) -> bool> LeafVisit for AnyLeaves
         let Self {
             kernel,
             geometry,
+            ray,
             wray,
             accept,
             found,
         } = self;
+        let wray = &*wray.get_or_insert_with(|| WatertightRay::new(ray));
         *found = geometry.for_possible_hits(*kernel, wray, first, count, |block, lane| {
             wray.intersect_lane(block, lane, t_max)
                 .is_some_and(|hit| accept(block.triangles[lane], &hit))
