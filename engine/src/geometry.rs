@@ -107,10 +107,7 @@ impl Geometry {
         accept: impl FnMut(u32, &TriangleHit) -> bool,
     ) -> Option<GeometryHit> {
         let mut leaves = ClosestLeaves {
-            kernel,
-            geometry: self,
-            ray,
-            wray: None,
+            leaf: LeafRay::new(kernel, self, ray),
             accept,
             best: None,
         };
@@ -139,10 +136,7 @@ impl Geometry {
         accept: impl FnMut(u32, &TriangleHit) -> bool,
     ) -> bool {
         let mut leaves = AnyLeaves {
-            kernel,
-            geometry: self,
-            ray,
-            wray: None,
+            leaf: LeafRay::new(kernel, self, ray),
             accept,
             found: false,
         };
@@ -186,12 +180,48 @@ impl Geometry {
     }
 }
 
-/// The closest-hit leaf test of a bottom level, inlined into the traversal loop.
-struct ClosestLeaves<'a, K, A> {
+/// What both leaf tests of a bottom level hold: kernel, geometry and ray, with the
+/// watertight set-up made at the first leaf (many instance entries reach none).
+struct LeafRay<'a, K> {
     kernel: K,
     geometry: &'a Geometry,
     ray: &'a Ray,
-    wray: Option<WatertightRay>,
+    watertight: Option<WatertightRay>,
+}
+
+impl<'a, K: NodeKernel> LeafRay<'a, K> {
+    #[inline(always)]
+    fn new(kernel: K, geometry: &'a Geometry, ray: &'a Ray) -> Self {
+        Self {
+            kernel,
+            geometry,
+            ray,
+            watertight: None,
+        }
+    }
+
+    /// [`Geometry::for_possible_hits`] with the prepared ray: `test(ray, block, lane)`.
+    #[inline(always)]
+    fn for_possible_hits(
+        &mut self,
+        first: usize,
+        count: usize,
+        mut test: impl FnMut(&WatertightRay, &TriangleBlock, usize) -> bool,
+    ) -> bool {
+        let ray = self.ray;
+        let wray = &*self
+            .watertight
+            .get_or_insert_with(|| WatertightRay::new(ray));
+        self.geometry
+            .for_possible_hits(self.kernel, wray, first, count, |block, lane| {
+                test(wray, block, lane)
+            })
+    }
+}
+
+/// The closest-hit leaf test of a bottom level, inlined into the traversal loop.
+struct ClosestLeaves<'a, K, A> {
+    leaf: LeafRay<'a, K>,
     accept: A,
     best: Option<GeometryHit>,
 }
@@ -199,16 +229,8 @@ struct ClosestLeaves<'a, K, A> {
 impl<K: NodeKernel, A: FnMut(u32, &TriangleHit) -> bool> LeafVisit for ClosestLeaves<'_, K, A> {
     #[inline(always)]
     fn visit(&mut self, first: usize, count: usize, mut t_max: f32) -> (f32, bool) {
-        let Self {
-            kernel,
-            geometry,
-            ray,
-            wray,
-            accept,
-            best,
-        } = self;
-        let wray = &*wray.get_or_insert_with(|| WatertightRay::new(ray));
-        geometry.for_possible_hits(*kernel, wray, first, count, |block, lane| {
+        let Self { leaf, accept, best } = self;
+        leaf.for_possible_hits(first, count, |wray, block, lane| {
             if let Some(hit) = wray.intersect_lane(block, lane, t_max) {
                 let triangle = block.triangles[lane];
                 if accept(triangle, &hit) {
@@ -225,10 +247,7 @@ impl<K: NodeKernel, A: FnMut(u32, &TriangleHit) -> bool> LeafVisit for ClosestLe
 /// The any-hit leaf test of a bottom level, inlined into the traversal loop: stops at
 /// the first triangle `accept` keeps.
 struct AnyLeaves<'a, K, A> {
-    kernel: K,
-    geometry: &'a Geometry,
-    ray: &'a Ray,
-    wray: Option<WatertightRay>,
+    leaf: LeafRay<'a, K>,
     accept: A,
     found: bool,
 }
@@ -237,15 +256,11 @@ impl<K: NodeKernel, A: FnMut(u32, &TriangleHit) -> bool> LeafVisit for AnyLeaves
     #[inline(always)]
     fn visit(&mut self, first: usize, count: usize, t_max: f32) -> (f32, bool) {
         let Self {
-            kernel,
-            geometry,
-            ray,
-            wray,
+            leaf,
             accept,
             found,
         } = self;
-        let wray = &*wray.get_or_insert_with(|| WatertightRay::new(ray));
-        *found = geometry.for_possible_hits(*kernel, wray, first, count, |block, lane| {
+        *found = leaf.for_possible_hits(first, count, |wray, block, lane| {
             wray.intersect_lane(block, lane, t_max)
                 .is_some_and(|hit| accept(block.triangles[lane], &hit))
         });
