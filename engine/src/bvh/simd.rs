@@ -376,12 +376,16 @@ mod tests {
         out
     }
 
+    /// The AVX2 token; these tests need an AVX2 machine (CI has one).
+    #[cfg(target_arch = "x86_64")]
+    fn avx2_here() -> Avx2 {
+        Avx2::on_this_cpu().expect("this test needs an AVX2 machine (CI has one)")
+    }
+
     #[cfg(target_arch = "x86_64")]
     #[test]
     fn avx2_and_portable_kernels_give_the_same_bits() {
-        let Some(avx2) = Avx2::on_this_cpu() else {
-            panic!("this test needs an AVX2 machine (CI has one)");
-        };
+        let avx2 = avx2_here();
         let mut hits = 0;
         for (ray, node, t_max) in cases() {
             let (t_a, m_a) = avx2.hit_children(&ray, &node, t_max);
@@ -398,9 +402,7 @@ mod tests {
     #[cfg(target_arch = "x86_64")]
     #[test]
     fn avx2_and_portable_block_checks_give_the_same_bits() {
-        let Some(avx2) = Avx2::on_this_cpu() else {
-            panic!("this test needs an AVX2 machine (CI has one)");
-        };
+        let avx2 = avx2_here();
         let mut state = 11;
         let specials = [0.0, -0.0, 1e-40, f32::INFINITY, f32::NAN, 1e30, -1e-30];
         let (mut passed, mut compared) = (0, 0);
