@@ -5,8 +5,9 @@ use crate::bvh::simd::{NodeKernel, with_node_kernel};
 use crate::bvh::{BuildParams, Bvh, LeafVisit, PADDING, TraversalStats};
 use crate::math::{Aabb, Ray};
 use crate::mesh::{MeshError, TriangleMesh};
+use crate::support::SupportTable;
 use crate::triangle::{TriangleBlock, TriangleHit, WatertightRay};
-use glam::Vec3A;
+use glam::{Affine3A, Vec3A};
 use rayon::prelude::*;
 
 /// Triangles per [`TriangleBlock`]: the bottom level's leaves are aligned to it.
@@ -29,6 +30,8 @@ pub struct Geometry {
     /// The triangles of slots `4b .. 4b + 4` in block `b`: leaves start at multiples of
     /// four ([`BuildParams::leaf_block`]), so a leaf's triangles fill whole blocks.
     blocks: Vec<TriangleBlock>,
+    /// The mesh's support function, for tight instance boxes.
+    support: SupportTable,
 }
 
 /// A hit inside one geometry.
@@ -75,6 +78,7 @@ impl Geometry {
             .collect();
         Ok(Self {
             name: name.into(),
+            support: SupportTable::new(&mesh.positions),
             mesh,
             bvh,
             blocks,
@@ -84,6 +88,16 @@ impl Geometry {
     /// Object-space box.
     pub fn bounds(&self) -> Aabb {
         self.bvh.bounds()
+    }
+
+    /// A box holding the mesh after `transform` (an instance's world box): from the
+    /// support function, within a few percent of the tightest box where the object box's
+    /// transformed corners can be √2 wider per axis.
+    pub fn transformed_bounds(&self, transform: &Affine3A) -> Aabb {
+        if self.bvh.bounds().is_empty() {
+            return Aabb::EMPTY;
+        }
+        self.support.transformed_bounds(transform)
     }
 
     /// Closest hit with `0 < t < ray.t_max` that `accept(triangle, hit)` keeps.

@@ -21,6 +21,7 @@ pub mod metrics;
 pub mod render;
 pub mod sampling;
 pub mod shading;
+pub mod support;
 pub mod sway;
 pub mod tlas;
 pub mod transparency;

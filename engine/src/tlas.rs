@@ -143,7 +143,7 @@ fn usable<'a>(
 /// An instance's world box, or why it cannot enter the tree.
 fn world_bounds(library: &GeometryLibrary, desc: &InstanceDesc) -> Result<Aabb, Unusable> {
     let (geometry, _) = usable(library, desc)?;
-    Ok(geometry.bounds().transformed(&desc.transform))
+    Ok(geometry.transformed_bounds(&desc.transform))
 }
 
 /// An instance's record (with the inverse transform), or why it cannot enter the tree.
@@ -175,7 +175,7 @@ fn placed(
         geometry: desc.geometry,
         id,
     };
-    Ok((geometry.bounds().transformed(&desc.transform), record))
+    Ok((geometry.transformed_bounds(&desc.transform), record))
 }
 
 /// Summed surface area of instance boxes (at least the smallest positive f64, so a ratio

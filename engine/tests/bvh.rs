@@ -345,8 +345,7 @@ fn instance_of_an_empty_mesh_and_singular_transforms_are_harmless() {
             boxes[r.id as usize] = lib
                 .get(r.geometry)
                 .unwrap()
-                .bounds()
-                .transformed(&r.object_to_world);
+                .transformed_bounds(&r.object_to_world);
         }
         tlas.bvh.validate(&boxes).unwrap();
     }
@@ -396,6 +395,51 @@ proptest! {
     fn proptest_tlas_closest_equals_brute_force(seed in any::<u64>(), geometries in 1usize..5, instances in 0usize..120) {
         check_instances_against_brute_force(seed, geometries, instances, 150);
     }
+}
+
+#[test]
+fn a_turned_instance_gets_a_box_that_hugs_its_mesh() {
+    // A round crown of triangles, turned 45° about its stem and tilted: the corners of
+    // its object box, transformed, give a box twice the exact one's ground area; the
+    // instance's box must stay within 10 % of exact, and hold every vertex.
+    let mut rng = TestRng::new(21);
+    let mut mesh = TriangleMesh::default();
+    for i in 0..3_000u32 {
+        mesh.positions
+            .push(Vec3::from(rng.unit()) * 2.0 + Vec3::Y * 3.0);
+        if i % 3 == 2 {
+            mesh.indices.push([i - 2, i - 1, i]);
+            mesh.shaders.push(0);
+        }
+    }
+    let mut lib = GeometryLibrary::default();
+    let crown = lib.add(Geometry::new("crown", mesh.clone(), BuildParams::BALANCED).unwrap());
+    let transform = Affine3A::from_scale_rotation_translation(
+        Vec3::splat(1.2),
+        glam::Quat::from_rotation_x(0.15)
+            * glam::Quat::from_rotation_y(std::f32::consts::FRAC_PI_4),
+        Vec3::new(40.0, -1.0, 7.0),
+    );
+    let tlas = TopLevel::build(
+        &lib,
+        &[InstanceDesc {
+            transform,
+            geometry: crown,
+        }],
+        BuildParams::BALANCED,
+    );
+    let exact = Aabb::from_points(
+        mesh.positions
+            .iter()
+            .map(|&p| transform.transform_point3a(p.into())),
+    );
+    let ground = |b: Aabb| b.extent().x * b.extent().z;
+    let got = tlas.bounds();
+    assert!(got.contains(&exact), "{got:?} does not hold {exact:?}");
+    assert!(
+        ground(got) < 1.1 * ground(exact),
+        "instance box {got:?}, exact {exact:?}"
+    );
 }
 
 #[test]

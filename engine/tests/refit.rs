@@ -31,8 +31,7 @@ fn world_boxes(lib: &GeometryLibrary, descs: &[InstanceDesc]) -> Vec<Aabb> {
         .map(|d| {
             lib.get(d.geometry)
                 .unwrap()
-                .bounds()
-                .transformed(&d.transform)
+                .transformed_bounds(&d.transform)
         })
         .collect()
 }
