@@ -122,6 +122,8 @@ impl SupportTable {
             (i, f - i as f32)
         };
         let ((i, fu), (j, fv)) = (cell(u), cell(v));
+        // `i, j < CELLS`, so the index never exceeds the last sample; the `min` only spares
+        // a bounds check.
         let at = |di: usize, dj: usize| samples[((i + di) * SIDE + j + dj).min(DIRECTIONS - 1)];
         let (h00, h10, h01, h11) = (at(0, 0), at(1, 0), at(0, 1), at(1, 1));
         // The cell splits along the diagonal the octahedron's fold takes in its quadrant,
