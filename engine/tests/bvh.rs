@@ -405,8 +405,7 @@ fn a_turned_instance_gets_a_box_that_hugs_its_mesh() {
     let mut rng = TestRng::new(21);
     let mut mesh = TriangleMesh::default();
     for i in 0..3_000u32 {
-        mesh.positions
-            .push(Vec3::from(rng.unit()) * 2.0 + Vec3::Y * 3.0);
+        mesh.positions.push(rng.unit() * 2.0 + Vec3::Y * 3.0);
         if i % 3 == 2 {
             mesh.indices.push([i - 2, i - 1, i]);
             mesh.shaders.push(0);
