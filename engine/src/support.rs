@@ -70,25 +70,27 @@ impl SupportTable {
         // One pass over the points per chunk, all directions per point (fixed-length
         // arrays, a loop the compiler vectorizes); f32 products are within a few ulps of
         // the radius, far inside the slack every bound adds.
-        let samples = points
+        let (samples, radius) = points
             .par_chunks(1 << 14)
             .map(|chunk| {
                 let mut best = [f32::NEG_INFINITY; DIRECTIONS];
+                let mut radius = 0.0f32;
                 for p in chunk {
                     for k in 0..DIRECTIONS {
                         let dot = ox[k] * p.x + oy[k] * p.y + oz[k] * p.z;
                         best[k] = if dot > best[k] { dot } else { best[k] };
                     }
+                    radius = radius.max(p.length());
                 }
-                best
+                (best, radius)
             })
-            .reduce_with(|mut a, b| {
+            .reduce_with(|(mut a, ra), (b, rb)| {
                 for (a, b) in a.iter_mut().zip(b) {
                     *a = a.max(b);
                 }
-                a
-            });
-        let radius = points.iter().map(|p| p.length()).fold(0.0, f32::max);
+                (a, ra.max(rb))
+            })
+            .map_or((None, 0.0), |(best, radius)| (Some(best), radius));
         Self { samples, radius }
     }
 
