@@ -144,6 +144,72 @@ impl SupportTable {
         length * (interpolated + SLACK * self.radius)
     }
 
+    /// [`support`](Self::support) at eight directions at once, as structure of arrays:
+    /// the same operations in the same order per lane (so the same bits), in loops the
+    /// compiler turns into SIMD; only the four sample loads per lane stay scalar. One
+    /// direction at a time, the six of an instance box were a sixth of a 365 k-instance
+    /// top-level build.
+    pub fn support8(&self, dx: [f32; 8], dy: [f32; 8], dz: [f32; 8]) -> [f32; 8] {
+        let Some(samples) = &self.samples else {
+            return [f32::NEG_INFINITY; 8];
+        };
+        let half_cells = 0.5 * CELLS as f32;
+        let (mut length, mut fu, mut fv) = ([0.0f32; 8], [0.0f32; 8], [0.0f32; 8]);
+        let (mut iu, mut iv) = ([0.0f32; 8], [0.0f32; 8]);
+        // Floors without `floor` (a library call below SSE4.1) or integer casts (Rust's
+        // saturating casts do not vectorize): round to nearest by adding 2²³, step down
+        // where that rounded up. Exact for values in [0, CELLS].
+        const MAGIC: f32 = 8_388_608.0;
+        let floor = |f: f32| {
+            let nearest = (f + MAGIC) - MAGIC;
+            if nearest > f { nearest - 1.0 } else { nearest }
+        };
+        for k in 0..8 {
+            let (ax, ay, az) = (dx[k].abs(), dy[k].abs(), dz[k].abs());
+            length[k] = ax + ay + az;
+            let scale = 1.0 / length[k];
+            let lower = dz[k] < 0.0;
+            let u = if lower {
+                (1.0 - ay * scale).copysign(dx[k])
+            } else {
+                dx[k] * scale
+            };
+            let v = if lower {
+                (1.0 - ax * scale).copysign(dy[k])
+            } else {
+                dy[k] * scale
+            };
+            let f = ((u + 1.0) * half_cells).max(0.0).min(CELLS as f32);
+            iu[k] = floor(f).min((CELLS - 1) as f32);
+            fu[k] = f - iu[k];
+            let f = ((v + 1.0) * half_cells).max(0.0).min(CELLS as f32);
+            iv[k] = floor(f).min((CELLS - 1) as f32);
+            fv[k] = f - iv[k];
+        }
+        let (mut h00, mut h10, mut h01, mut h11) = ([0.0f32; 8], [0.0; 8], [0.0; 8], [0.0; 8]);
+        for k in 0..8 {
+            let index = |f: f32| ((f + MAGIC).to_bits() & 0x7f_ffff) as usize;
+            let (i, j) = (index(iu[k]), index(iv[k]));
+            let at = |di: usize, dj: usize| samples[((i + di) * SIDE + j + dj).min(DIRECTIONS - 1)];
+            (h00[k], h10[k], h01[k], h11[k]) = (at(0, 0), at(1, 0), at(0, 1), at(1, 1));
+        }
+        let mut out = [0.0f32; 8];
+        for k in 0..8 {
+            let upper_u = iu[k] >= (CELLS / 2) as f32;
+            let upper_v = iv[k] >= (CELLS / 2) as f32;
+            let past = if upper_u == upper_v {
+                (fu[k] + fv[k] - 1.0).max(0.0)
+            } else {
+                fu[k].min(fv[k])
+            };
+            let twist = h11[k] + h00[k] - h10[k] - h01[k];
+            let interpolated =
+                h00[k] + fu[k] * (h10[k] - h00[k]) + fv[k] * (h01[k] - h00[k]) + twist * past;
+            out[k] = length[k] * (interpolated + SLACK * self.radius);
+        }
+        out
+    }
+
     /// A box holding every sampled point after `transform`: per axis, the translation
     /// plus the support at the matrix row and minus it at the negated row, each sum
     /// moved outward by more than its rounding (half an ulp of the sum).
@@ -152,18 +218,16 @@ impl SupportTable {
             return Aabb::EMPTY;
         }
         let rows = transform.matrix3.transpose();
-        let row = [rows.x_axis, rows.y_axis, rows.z_axis];
+        let [x, y, z] = [rows.x_axis, rows.y_axis, rows.z_axis];
+        // The six directions ±row, and two spare lanes on a harmless direction.
+        let h = self.support8(
+            [x.x, y.x, z.x, -x.x, -y.x, -z.x, 1.0, 1.0],
+            [x.y, y.y, z.y, -x.y, -y.y, -z.y, 0.0, 0.0],
+            [x.z, y.z, z.z, -x.z, -y.z, -z.z, 0.0, 0.0],
+        );
         let t = transform.translation;
-        let max = Vec3A::new(
-            t.x + self.support(row[0]),
-            t.y + self.support(row[1]),
-            t.z + self.support(row[2]),
-        );
-        let min = Vec3A::new(
-            t.x - self.support(-row[0]),
-            t.y - self.support(-row[1]),
-            t.z - self.support(-row[2]),
-        );
+        let max = t + Vec3A::new(h[0], h[1], h[2]);
+        let min = t - Vec3A::new(h[3], h[4], h[5]);
         // 2⁻²³ relative is two half-ulps; the constant covers results in the denormals.
         let rounding = |v: Vec3A| v.abs() * f32::EPSILON + Vec3A::splat(1e-30);
         Aabb {
@@ -202,6 +266,51 @@ mod tests {
             hi = hi.max(q);
         }
         (lo, hi)
+    }
+
+    #[test]
+    fn eight_directions_at_once_give_the_bits_of_one_at_a_time() {
+        let mut state = 0x5eed_0f_e1_647u64;
+        let points: Vec<Vec3> = (0..200)
+            .map(|_| {
+                Vec3::new(
+                    uniform(&mut state) - 0.5,
+                    uniform(&mut state) * 3.0,
+                    uniform(&mut state) - 0.3,
+                )
+            })
+            .collect();
+        let table = SupportTable::new(&points);
+        let mut component = |k: usize| match k % 9 {
+            // Grid directions, axes and folds, where the cell split changes side.
+            0 => 0.0,
+            1 => 1.0,
+            2 => -1.0,
+            3 => 0.5,
+            _ => uniform(&mut state) * 2.0 - 1.0,
+        };
+        for case in 0..4_000 {
+            let mut d = [[0.0f32; 8]; 3];
+            for (axis, lanes) in d.iter_mut().enumerate() {
+                for (lane, v) in lanes.iter_mut().enumerate() {
+                    *v = component(case + 3 * lane + axis);
+                }
+            }
+            for lane in 0..8 {
+                if d[0][lane] == 0.0 && d[1][lane] == 0.0 && d[2][lane] == 0.0 {
+                    d[0][lane] = 1.0;
+                }
+            }
+            let batch = table.support8(d[0], d[1], d[2]);
+            for lane in 0..8 {
+                let one = table.support(Vec3A::new(d[0][lane], d[1][lane], d[2][lane]));
+                assert_eq!(
+                    batch[lane].to_bits(),
+                    one.to_bits(),
+                    "lane {lane} of case {case}"
+                );
+            }
+        }
     }
 
     #[test]

@@ -168,7 +168,7 @@ const EMPTY_BIN: Bin = Bin {
 };
 
 /// A node's primitives: their box and the box of their centroids.
-#[derive(Clone, Copy)]
+#[derive(Clone, Copy, Debug)]
 struct Extent {
     bounds: Aabb,
     centroids: Aabb,
@@ -200,6 +200,7 @@ impl Extent {
     }
 }
 
+#[derive(Debug)]
 enum Split {
     Leaf,
     Median,
@@ -384,7 +385,8 @@ impl Builder {
                     left,
                     right,
                 } => {
-                    let mid = partition(refs, |c| bin_index(c, axis, scale, min, bins) < bin);
+                    let scale = axis_scale(scale, axis);
+                    let mid = partition(refs, |c| bin_on_axis(c, scale, min, bins) < bin);
                     (mid, left, right)
                 }
             };
@@ -435,6 +437,17 @@ impl Builder {
                 Split::Median
             };
         }
+        if n == 2 {
+            return self.split_pair(refs, extent);
+        }
+        self.binned_split(refs, extent, scratch)
+    }
+
+    /// The SAH split over binned centroids (or a leaf, or a median split when no bin
+    /// boundary separates the primitives).
+    fn binned_split(&self, refs: &[PrimRef], extent: &Extent, scratch: &mut Scratch) -> Split {
+        let n = refs.len();
+        let max_leaf = self.params.max_leaf_size;
         let cb = &extent.centroids;
         // More bins than primitives cannot find better splits.
         let bins_per_axis = self.params.bins.min(n.max(2));
@@ -523,6 +536,58 @@ impl Builder {
     }
 }
 
+impl Builder {
+    /// [`find_split`](Self::find_split) for two primitives without the bins: the same
+    /// decision to the bit (two bins per axis; the first axis that puts them in
+    /// different bins, as every such axis gives the same cost) at a fraction of the
+    /// cost. Half of a top-level tree's nodes hold two instances.
+    fn split_pair(&self, refs: &[PrimRef], extent: &Extent) -> Split {
+        let (scale, min) = bin_transform(&extent.centroids, 2);
+        let scale = if self.params.longest_axis_only {
+            axis_scale(scale, extent.centroids.largest_axis())
+        } else {
+            scale
+        };
+        let split = (0..3).filter(|&axis| scale[axis] != 0.0).find_map(|axis| {
+            let on_axis = axis_scale(scale, axis);
+            let [a, b] = [0, 1].map(|i| bin_on_axis(refs[i].centroid(), on_axis, min, 2));
+            (a != b).then(|| {
+                let (low, high) = if a < b { (0, 1) } else { (1, 0) };
+                (
+                    axis,
+                    Extent::EMPTY.with(&refs[low]),
+                    Extent::EMPTY.with(&refs[high]),
+                )
+            })
+        });
+        let Some((axis, left, right)) = split else {
+            return if 2 <= self.params.max_leaf_size {
+                Split::Leaf
+            } else {
+                Split::Median
+            };
+        };
+        let cost = left.bounds.surface_area() * self.blocks(1)
+            + right.bounds.surface_area() * self.blocks(1);
+        let area = extent.bounds.surface_area();
+        let split_cost = self.params.traversal_cost * area + cost;
+        let leaf_cost = self.blocks(2) * area;
+        if 2 <= self.params.max_leaf_size && leaf_cost <= split_cost {
+            Split::Leaf
+        } else {
+            Split::Binned {
+                axis,
+                bin: 1,
+                bins: 2,
+                scale,
+                min,
+                left,
+                right,
+            }
+        }
+    }
+}
+
 /// Moves every leaf's slots to start at a multiple of `block`, leaves in slot order,
 /// filling the gaps with [`PADDING`](super::PADDING); rewrites the leaves' first slots in
 /// `nodes` and returns the new slot order.
@@ -557,16 +622,27 @@ fn bin_transform(cb: &Aabb, bins: usize) -> (Vec3A, Vec3A) {
     (scale, cb.min)
 }
 
+/// The bin of a centroid along the one axis whose `scale` lane is non-zero (the others
+/// are 0): that lane's value of [`bin_indices`], the same IEEE operations in the same
+/// order, so binning and partitioning agree bit for bit. The zero lanes clamp to +0 and
+/// adding them is exact: a horizontal sum picks the lane without indexing a register by
+/// a run-time axis (which went through the stack, a third of the partition loop).
 #[inline]
-fn bin_index(centroid: Vec3A, axis: usize, scale: Vec3A, min: Vec3A, bins: usize) -> usize {
-    // The lane computation of `bin_indices` in scalar arithmetic: the same IEEE
-    // operations in the same order, so binning and partitioning agree bit for bit.
+fn bin_on_axis(centroid: Vec3A, scale: Vec3A, min: Vec3A, bins: usize) -> usize {
     const MAGIC: f32 = 8_388_608.0; // 2²³
-    let k = ((centroid[axis] - min[axis]) * scale[axis] - 0.5)
-        .max(0.0)
-        .min(bins as f32 - 1.0)
-        + MAGIC;
+    let k = ((centroid - min) * scale - Vec3A::splat(0.5))
+        .clamp(Vec3A::ZERO, Vec3A::splat(bins as f32 - 1.0));
+    let k = (k.x + k.y) + k.z + MAGIC;
     (k.to_bits() & 0x7f_ffff) as usize
+}
+
+/// `scale` with every lane but `axis` zeroed, for [`bin_on_axis`].
+fn axis_scale(scale: Vec3A, axis: usize) -> Vec3A {
+    Vec3A::select(
+        glam::BVec3A::new(axis == 0, axis == 1, axis == 2),
+        scale,
+        Vec3A::ZERO,
+    )
 }
 
 /// The bin of a centroid on all three axes at once, without float-to-integer casts
@@ -587,6 +663,17 @@ fn bin_indices(centroid: Vec3A, scale: Vec3A, min: Vec3A, bins: usize) -> [usize
 fn fill_bins(refs: &[PrimRef], scale: Vec3A, min: Vec3A, bins: usize, out: &mut [Bin]) {
     // Axes with scale 0 cannot be split: skip their bins.
     let active = [scale.x != 0.0, scale.y != 0.0, scale.z != 0.0];
+    if active.iter().filter(|&&a| a).count() == 1 {
+        let axis = active.iter().position(|&a| a).unwrap_or(0);
+        // One axis (the top level bins only the longest): one bin per primitive.
+        let out = &mut out[axis * bins..(axis + 1) * bins];
+        for r in refs {
+            let b = &mut out[bin_on_axis(r.centroid(), scale, min, bins)];
+            b.extent = b.extent.with(r);
+            b.count += 1;
+        }
+        return;
+    }
     for r in refs {
         let k = bin_indices(r.centroid(), scale, min, bins);
         for axis in 0..3 {
@@ -621,4 +708,50 @@ fn partition(refs: &mut [PrimRef], goes_left: impl Fn(Vec3A) -> bool) -> usize {
         k += is_left as usize;
     }
     k
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn uniform(state: &mut u64) -> f32 {
+        *state ^= *state >> 12;
+        *state ^= *state << 25;
+        *state ^= *state >> 27;
+        (state.wrapping_mul(0x2545_f491_4f6c_dd1d) >> 40) as f32 / (1u64 << 24) as f32
+    }
+
+    #[test]
+    fn a_pair_splits_as_the_bins_would_split_it() {
+        let mut state = 0x9a1e_5eedu64;
+        let mut coordinate = |state: &mut u64| match (uniform(state) * 4.0) as u32 {
+            // Shared coordinates and coincident centroids take the other branches.
+            0 => 0.25,
+            _ => uniform(state) * 2.0 - 1.0,
+        };
+        for case in 0..20_000 {
+            let refs: Vec<PrimRef> = (0..2)
+                .map(|i| {
+                    let lo = Vec3A::new(
+                        coordinate(&mut state),
+                        coordinate(&mut state),
+                        coordinate(&mut state),
+                    );
+                    let size = Vec3A::new(uniform(&mut state), uniform(&mut state), 0.1);
+                    PrimRef::new(&Aabb::new(lo, lo + size * (case % 3) as f32), i)
+                })
+                .collect();
+            let extent = Extent::of(&refs);
+            for (name, params) in BuildParams::PRESETS {
+                let builder = Builder { params };
+                let pair = builder.split_pair(&refs, &extent);
+                let binned = builder.binned_split(&refs, &extent, &mut Scratch::new());
+                assert_eq!(
+                    format!("{pair:?}"),
+                    format!("{binned:?}"),
+                    "case {case}, {name}"
+                );
+            }
+        }
+    }
 }

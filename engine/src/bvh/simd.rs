@@ -129,12 +129,17 @@ fn hit_half(ray: &NodeRay, node: &WideNode, first: usize, t_max: f32) -> (Vec4, 
 }
 
 #[cfg(target_arch = "x86_64")]
-pub use avx2::{Avx2, prefetch_node};
+pub use avx2::{Avx2, prefetch, prefetch_node};
 
 /// Prefetching is an x86 hint here; elsewhere nothing.
 #[cfg(not(target_arch = "x86_64"))]
 #[inline(always)]
 pub fn prefetch_node(_node: &WideNode) {}
+
+/// Prefetching is an x86 hint here; elsewhere nothing.
+#[cfg(not(target_arch = "x86_64"))]
+#[inline(always)]
+pub fn prefetch<T>(_value: &T) {}
 
 #[cfg(target_arch = "x86_64")]
 #[expect(
@@ -159,6 +164,19 @@ mod avx2 {
             // SAFETY: a prefetch is a hint that never faults, and the address lies
             // inside `node`.
             unsafe { _mm_prefetch::<_MM_HINT_T0>(base.add(line * 64)) };
+        }
+    }
+
+    /// Starts loading the cache lines of `value`'s first and last bytes (SSE, so any
+    /// x86-64): for gathers in an order unrelated to memory, where each load misses.
+    #[inline(always)]
+    pub fn prefetch<T>(value: &T) {
+        let first = std::ptr::from_ref(value).cast::<i8>();
+        // SAFETY: a prefetch is a hint that never faults; both addresses lie inside
+        // `value` (for a zero-sized one the first is a valid dangling address).
+        unsafe {
+            _mm_prefetch::<_MM_HINT_T0>(first);
+            _mm_prefetch::<_MM_HINT_T0>(first.add(std::mem::size_of::<T>().max(1) - 1));
         }
     }
 
