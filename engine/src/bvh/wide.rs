@@ -121,15 +121,28 @@ pub fn collapse(binary: &[BvhNode]) -> Vec<WideNode> {
             piece
         })
         .collect();
-    let total = top.len() + pieces.iter().map(Vec::len).sum::<usize>();
-    let mut wide = Vec::with_capacity(total);
-    wide.extend_from_slice(&top);
+    // Where each piece starts in the result; the top nodes point at those starts.
+    let mut starts = Vec::with_capacity(pieces.len() + 1);
+    let mut end = top.len();
     for (lane, piece) in frontier.iter().zip(&pieces) {
-        let offset = wide.len() as u32;
-        wide[lane.node].children[lane.lane] = offset;
-        wide.extend(piece.iter().map(|node| node.with_children_offset(offset)));
+        top[lane.node].children[lane.lane] = end as u32;
+        starts.push(end);
+        end += piece.len();
     }
-    wide
+    starts.push(end);
+    // Copied in parallel straight into the result (an indexed collect): a serial copy
+    // of the pieces, and the page faults of its fresh memory on one core, were a tenth
+    // of a 365 k-instance top-level build.
+    (0..end)
+        .into_par_iter()
+        .map(|index| {
+            if index < top.len() {
+                return top[index];
+            }
+            let piece = starts.partition_point(|&start| start <= index) - 1;
+            pieces[piece][index - starts[piece]].with_children_offset(starts[piece] as u32)
+        })
+        .collect()
 }
 
 /// Wide levels made before the subtrees below them are collapsed in parallel (up to 64
