@@ -140,9 +140,31 @@ fn usable<'a>(
     Ok((geometry, world_to_object))
 }
 
+/// True when `transform`'s inverse is surely finite, without computing it: entries up
+/// to 10⁶, a translation up to 10¹² and a determinant of at least 10⁻¹² keep every
+/// cofactor over the determinant below 2·10²⁴ and the inverse's translation below
+/// 10³⁷, far inside f32. Anything else (NaN included) takes the full check.
+fn surely_invertible(transform: &Affine3A) -> bool {
+    let m = &transform.matrix3;
+    let largest = m
+        .x_axis
+        .abs()
+        .max(m.y_axis.abs())
+        .max(m.z_axis.abs())
+        .max_element();
+    transform.is_finite()
+        && largest <= 1e6
+        && transform.translation.abs().max_element() <= 1e12
+        && m.determinant().abs() >= 1e-12
+}
+
 /// An instance's world box, or why it cannot enter the tree.
 fn world_bounds(library: &GeometryLibrary, desc: &InstanceDesc) -> Result<Aabb, Unusable> {
-    let (geometry, _) = usable(library, desc)?;
+    // The usual instance skips the inverse here; `record` computes it once per slot.
+    let geometry = match library.get(desc.geometry) {
+        Some(geometry) if surely_invertible(&desc.transform) => geometry,
+        _ => usable(library, desc)?.0,
+    };
     Ok(geometry.transformed_bounds(&desc.transform))
 }
 
@@ -499,5 +521,55 @@ impl TopLevel {
             });
         stats.add(&inner);
         occluded
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use glam::{Mat3, Vec3};
+
+    #[test]
+    fn a_surely_invertible_transform_has_a_finite_inverse() {
+        fn uniform(state: &mut u64) -> f32 {
+            *state ^= *state >> 12;
+            *state ^= *state << 25;
+            *state ^= *state >> 27;
+            (state.wrapping_mul(0x2545_f491_4f6c_dd1d) >> 40) as f32 / (1u64 << 24) as f32
+        }
+        let mut state = 0x1ee7_c0de_u64;
+        let s = &mut state;
+        let mut checked = 0;
+        for case in 0..200_000 {
+            // Entries up to the limit, determinants down to the denormals (scales from
+            // 10⁻⁴⁵ up, or rows that nearly repeat), translations at the limit.
+            let row = |s: &mut u64| Vec3::new(uniform(s) - 0.5, uniform(s) - 0.5, uniform(s) - 0.5);
+            let power =
+                |s: &mut u64, low: f32, high: f32| 10f32.powf(low + uniform(s) * (high - low));
+            let matrix = if case % 2 == 0 {
+                let scales = Vec3::new(
+                    power(s, -6.0, 6.0),
+                    power(s, -6.0, 6.0),
+                    power(s, -45.0, 6.0),
+                );
+                let shear =
+                    Mat3::from_cols(Vec3::X, Vec3::new(power(s, -6.0, 6.0), 1.0, 0.0), Vec3::Z);
+                shear * Mat3::from_diagonal(scales)
+            } else {
+                let (a, b) = (row(s), row(s));
+                let c = a + Vec3::Z * power(s, -8.0, 0.0);
+                Mat3::from_cols(a, b, c).transpose() * power(s, -6.0, 6.0)
+            };
+            let translation = row(s) * 2.0 * if case % 3 == 0 { 1.0 } else { 1e12 };
+            let transform = Affine3A::from_mat3_translation(matrix, translation);
+            if surely_invertible(&transform) {
+                checked += 1;
+                assert!(
+                    transform.inverse().is_finite(),
+                    "case {case}: {transform:?}"
+                );
+            }
+        }
+        assert!(checked > 10_000, "only {checked} cases near the limits");
     }
 }
