@@ -724,7 +724,7 @@ mod tests {
     #[test]
     fn a_pair_splits_as_the_bins_would_split_it() {
         let mut state = 0x9a1e_5eedu64;
-        let mut coordinate = |state: &mut u64| match (uniform(state) * 4.0) as u32 {
+        let coordinate = |state: &mut u64| match (uniform(state) * 4.0) as u32 {
             // Shared coordinates and coincident centroids take the other branches.
             0 => 0.25,
             _ => uniform(state) * 2.0 - 1.0,
