@@ -23,6 +23,8 @@ pub mod sampling;
 pub mod shading;
 pub mod support;
 pub mod sway;
+#[cfg(test)]
+mod test_random;
 pub mod tlas;
 pub mod transparency;
 pub mod triangle;

@@ -240,15 +240,8 @@ impl SupportTable {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::test_random::uniform;
     use glam::{DVec3, Quat};
-
-    /// A small deterministic generator (xorshift64*), uniform in [0, 1).
-    fn uniform(state: &mut u64) -> f32 {
-        *state ^= *state >> 12;
-        *state ^= *state << 25;
-        *state ^= *state >> 27;
-        (state.wrapping_mul(0x2545_f491_4f6c_dd1d) >> 40) as f32 / (1u64 << 24) as f32
-    }
 
     fn exact_bounds(points: &[Vec3], m: &Affine3A) -> (DVec3, DVec3) {
         let rows = m.matrix3.transpose();

@@ -369,6 +369,7 @@ pub fn hit_point(p0: Vec3A, p1: Vec3A, p2: Vec3A, barycentrics: Vec3A) -> ErrorP
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::test_random::uniform;
 
     fn tri() -> (Vec3A, Vec3A, Vec3A) {
         (
@@ -417,14 +418,6 @@ mod tests {
                 .intersect(p0, p1, p2, f32::INFINITY)
                 .is_none()
         );
-    }
-
-    /// A small deterministic generator for the tests (xorshift64*).
-    fn uniform(state: &mut u64) -> f32 {
-        *state ^= *state >> 12;
-        *state ^= *state << 25;
-        *state ^= *state >> 27;
-        (state.wrapping_mul(0x2545_f491_4f6c_dd1d) >> 40) as f32 / (1u64 << 24) as f32
     }
 
     #[test]

@@ -713,13 +713,7 @@ fn partition(refs: &mut [PrimRef], goes_left: impl Fn(Vec3A) -> bool) -> usize {
 #[cfg(test)]
 mod tests {
     use super::*;
-
-    fn uniform(state: &mut u64) -> f32 {
-        *state ^= *state >> 12;
-        *state ^= *state << 25;
-        *state ^= *state >> 27;
-        (state.wrapping_mul(0x2545_f491_4f6c_dd1d) >> 40) as f32 / (1u64 << 24) as f32
-    }
+    use crate::test_random::uniform;
 
     #[test]
     fn a_pair_splits_as_the_bins_would_split_it() {
