@@ -94,61 +94,12 @@ impl SupportTable {
         Self { samples, radius }
     }
 
-    /// An upper bound on `max_p d·p` over the sampled points (`d` finite, non-zero);
-    /// `-∞` for a table without points. Branch-free but for the table's presence: an
-    /// instance's six directions fall anywhere, and branches on them mispredicted.
-    #[inline]
-    pub fn support(&self, d: Vec3A) -> f32 {
-        let Some(samples) = &self.samples else {
-            return f32::NEG_INFINITY;
-        };
-        let a = d.abs();
-        let length = a.x + a.y + a.z;
-        let scale = 1.0 / length;
-        let lower = d.z < 0.0;
-        let u = if lower {
-            (1.0 - a.y * scale).copysign(d.x)
-        } else {
-            d.x * scale
-        };
-        let v = if lower {
-            (1.0 - a.x * scale).copysign(d.y)
-        } else {
-            d.y * scale
-        };
-        let cell = |w: f32| {
-            let f = ((w + 1.0) * (0.5 * CELLS as f32))
-                .max(0.0)
-                .min(CELLS as f32);
-            let i = (f as usize).min(CELLS - 1);
-            (i, f - i as f32)
-        };
-        let ((i, fu), (j, fv)) = (cell(u), cell(v));
-        // `i, j < CELLS`, so the index never exceeds the last sample; the `min` only spares
-        // a bounds check.
-        let at = |di: usize, dj: usize| samples[((i + di) * SIDE + j + dj).min(DIRECTIONS - 1)];
-        let (h00, h10, h01, h11) = (at(0, 0), at(1, 0), at(0, 1), at(1, 1));
-        // The cell splits along the diagonal the octahedron's fold takes in its quadrant,
-        // so each half lies on one face, where the map is affine and the corners'
-        // directions combine into the direction exactly, with weights ≥ 0. On either
-        // half that interpolation is the bilinear one's first three terms plus
-        // `twist · w`, `w` the distance past the split diagonal.
-        let fold_falls = (i >= CELLS / 2) == (j >= CELLS / 2);
-        let past = if fold_falls {
-            (fu + fv - 1.0).max(0.0)
-        } else {
-            fu.min(fv)
-        };
-        let twist = h11 + h00 - h10 - h01;
-        let interpolated = h00 + fu * (h10 - h00) + fv * (h01 - h00) + twist * past;
-        length * (interpolated + SLACK * self.radius)
-    }
-
-    /// [`support`](Self::support) at eight directions at once, as structure of arrays:
-    /// the same operations in the same order per lane (so the same bits), in loops the
-    /// compiler turns into SIMD; only the four sample loads per lane stay scalar. One
-    /// direction at a time, the six of an instance box were a sixth of a 365 k-instance
-    /// top-level build.
+    /// Upper bounds on `max_p d·p` over the sampled points at eight directions `d`
+    /// (finite, non-zero), given as structure of arrays; `-∞` for a table without points.
+    /// Branch-free but for the table's presence (an instance's directions fall anywhere,
+    /// and branches on them mispredicted), in loops the compiler turns into SIMD; only the
+    /// four sample loads per lane stay scalar. One direction at a time, the six of an
+    /// instance box were a sixth of a 365 k-instance top-level build.
     pub fn support8(&self, dx: [f32; 8], dy: [f32; 8], dz: [f32; 8]) -> [f32; 8] {
         let Some(samples) = &self.samples else {
             return [f32::NEG_INFINITY; 8];
@@ -193,6 +144,11 @@ impl SupportTable {
             let at = |di: usize, dj: usize| samples[((i + di) * SIDE + j + dj).min(DIRECTIONS - 1)];
             (h00[k], h10[k], h01[k], h11[k]) = (at(0, 0), at(1, 0), at(0, 1), at(1, 1));
         }
+        // The cell splits along the diagonal the octahedron's fold takes in its quadrant,
+        // so each half lies on one face, where the map is affine and the corners'
+        // directions combine into the direction exactly, with weights ≥ 0. On either
+        // half that interpolation is the bilinear one's first three terms plus
+        // `twist · w`, `w` the distance past the split diagonal.
         let mut out = [0.0f32; 8];
         for k in 0..8 {
             let upper_u = iu[k] >= (CELLS / 2) as f32;
@@ -241,6 +197,50 @@ impl SupportTable {
 mod tests {
     use super::*;
     use crate::test_random::uniform;
+
+    /// The reference for [`SupportTable::support8`]: one direction, written plainly
+    /// (integer casts, the cell's corners by index), the same operations in order.
+    fn support_one(table: &SupportTable, d: Vec3A) -> f32 {
+        let Some(samples) = &table.samples else {
+            return f32::NEG_INFINITY;
+        };
+        let a = d.abs();
+        let length = a.x + a.y + a.z;
+        let scale = 1.0 / length;
+        let lower = d.z < 0.0;
+        let u = if lower {
+            (1.0 - a.y * scale).copysign(d.x)
+        } else {
+            d.x * scale
+        };
+        let v = if lower {
+            (1.0 - a.x * scale).copysign(d.y)
+        } else {
+            d.y * scale
+        };
+        let cell = |w: f32| {
+            let f = ((w + 1.0) * (0.5 * CELLS as f32))
+                .max(0.0)
+                .min(CELLS as f32);
+            let i = (f as usize).min(CELLS - 1);
+            (i, f - i as f32)
+        };
+        let ((i, fu), (j, fv)) = (cell(u), cell(v));
+        // `i, j < CELLS`, so the index never exceeds the last sample; the `min` only spares
+        // a bounds check.
+        let at = |di: usize, dj: usize| samples[((i + di) * SIDE + j + dj).min(DIRECTIONS - 1)];
+        let (h00, h10, h01, h11) = (at(0, 0), at(1, 0), at(0, 1), at(1, 1));
+        let fold_falls = (i >= CELLS / 2) == (j >= CELLS / 2);
+        let past = if fold_falls {
+            (fu + fv - 1.0).max(0.0)
+        } else {
+            fu.min(fv)
+        };
+        let twist = h11 + h00 - h10 - h01;
+        let interpolated = h00 + fu * (h10 - h00) + fv * (h01 - h00) + twist * past;
+        length * (interpolated + SLACK * table.radius)
+    }
+
     use glam::{DVec3, Quat};
 
     fn exact_bounds(points: &[Vec3], m: &Affine3A) -> (DVec3, DVec3) {
@@ -296,7 +296,7 @@ mod tests {
             }
             let batch = table.support8(d[0], d[1], d[2]);
             for lane in 0..8 {
-                let one = table.support(Vec3A::new(d[0][lane], d[1][lane], d[2][lane]));
+                let one = support_one(&table, Vec3A::new(d[0][lane], d[1][lane], d[2][lane]));
                 assert_eq!(
                     batch[lane].to_bits(),
                     one.to_bits(),
