@@ -717,7 +717,7 @@ fn render(args: RenderArgs) -> Result<()> {
     if !args.quiet {
         let rendered = render_stats.frames;
         println!(
-            "{}: {}x{}, {} frames at {} spp ({} spp in all) -> {}\n  {} instances, {} instanced triangles ({} unique), BLAS build {:.2} s, TLAS build {:.1} ms, scene generation {:.2} s\n  render {:.2} s ({:.3} s per frame), {:.2} M rays/s ({} camera + {} shadow rays), {:.2} transparency segments per camera ray ({:.2} holes tested), {} holes made opaque, {}, total {:.2} s\n  per ray: {:.1} nodes visited, {:.1} primitive tests (instances and triangles), {:.2} alpha tests",
+            "{}: {}x{}, {} frames at {} spp ({} spp in all) -> {}\n  {} instances, {} instanced triangles ({} unique), BLAS build {:.2} s, TLAS build {:.1} ms, scene generation {:.2} s\n  render {:.2} s ({:.3} s per frame), {:.2} M rays/s ({} camera + {} shadow rays), {:.2} transparency segments per camera ray ({:.2} holes tested), {} holes made opaque, {}, total {:.2} s\n  per ray: {:.1} nodes visited, {:.1} primitive tests (instances and triangles), {:.2} alpha tests ({:.2} sampled the texture)",
             scene_label(&args.scene),
             width,
             args.height,
@@ -744,6 +744,7 @@ fn render(args: RenderArgs) -> Result<()> {
             render_stats.total.nodes_visited as f64 / rays.max(1) as f64,
             render_stats.total.primitive_tests as f64 / rays.max(1) as f64,
             render_stats.total.filter_tests as f64 / rays.max(1) as f64,
+            render_stats.total.texture_alpha_tests as f64 / rays.max(1) as f64,
         );
     }
     Ok(())

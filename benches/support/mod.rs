@@ -13,6 +13,7 @@ use sylva::engine::camera::CameraView;
 use sylva::engine::geometry::GeometryLibrary;
 use sylva::engine::light::LightSet;
 use sylva::engine::math::Ray;
+use sylva::engine::opacity::OpacityMaps;
 use sylva::engine::render::RenderScene;
 use sylva::engine::shading::ShaderTable;
 use sylva::engine::tlas::TopLevel;
@@ -24,6 +25,7 @@ pub struct BenchScene {
     pub top_level: TopLevel,
     pub shaders: ShaderTable,
     pub lights: LightSet,
+    pub opacity: OpacityMaps,
     pub view: CameraView,
 }
 
@@ -39,11 +41,13 @@ impl BenchScene {
             environment: None,
         };
         let view = CameraView::new(&build.camera, &build.camera_transform.to_affine());
+        let opacity = OpacityMaps::build(&build.library, &shaders);
         Self {
             build,
             top_level,
             shaders,
             lights,
+            opacity,
             view,
         }
     }
@@ -58,6 +62,7 @@ impl BenchScene {
             top_level: &self.top_level,
             shaders: &self.shaders,
             lights: &self.lights,
+            opacity: &self.opacity,
         }
     }
 

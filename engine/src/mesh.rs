@@ -155,6 +155,17 @@ impl TriangleMesh {
         ]
     }
 
+    /// The texture coordinates at barycentrics `b` of triangle `i` ((0, 0) without UVs):
+    /// the one interpolation the hit filter and shading both use.
+    #[inline]
+    pub fn uv_at(&self, i: usize, b: Vec3A) -> Vec2 {
+        if self.uvs.is_empty() {
+            return Vec2::ZERO;
+        }
+        let [i0, i1, i2] = self.indices[i];
+        self.uvs[i0 as usize] * b.x + self.uvs[i1 as usize] * b.y + self.uvs[i2 as usize] * b.z
+    }
+
     /// The box of triangle `i`; empty when a corner is not finite (such a triangle can
     /// never be hit, and min/max would silently drop a NaN).
     pub fn triangle_bounds(&self, i: usize) -> Aabb {

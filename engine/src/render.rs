@@ -15,6 +15,7 @@ use crate::geometry::GeometryLibrary;
 use crate::interleave::{LightSubsets, stratified_selection};
 use crate::light::LightSet;
 use crate::math::{ErrorPoint, Ray};
+use crate::opacity::{Opacity, OpacityMaps};
 use crate::sampling::{SampleKey, cosine_hemisphere, orthonormal_basis};
 use crate::shading::{Shader, ShaderTable};
 use crate::tlas::{Candidate, Hit, TopLevel};
@@ -35,6 +36,9 @@ pub struct RenderScene<'a> {
     pub top_level: &'a TopLevel,
     /// Shaders by id.
     pub shaders: &'a ShaderTable,
+    /// Where alpha masks are decided without their texture ([`OpacityMaps::default`]:
+    /// nowhere, every alpha test samples the texture).
+    pub opacity: &'a OpacityMaps,
     /// Lights.
     pub lights: &'a LightSet,
 }
@@ -202,12 +206,7 @@ impl<'a> RenderScene<'a> {
     #[inline]
     fn uv_of(&self, candidate: &Candidate) -> Vec2 {
         let mesh = &self.geometry.geometries[candidate.geometry.0 as usize].mesh;
-        if mesh.uvs.is_empty() {
-            return Vec2::ZERO;
-        }
-        let [i0, i1, i2] = mesh.indices[candidate.triangle as usize];
-        let b = candidate.barycentrics;
-        mesh.uvs[i0 as usize] * b.x + mesh.uvs[i1 as usize] * b.y + mesh.uvs[i2 as usize] * b.z
+        mesh.uv_at(candidate.triangle as usize, candidate.barycentrics)
     }
 
     /// The hit filter run inside traversal: a hole where the shader's alpha mask has
@@ -219,6 +218,23 @@ impl<'a> RenderScene<'a> {
         direction: Vec3A,
         stats: &mut TraversalStats,
     ) -> FilterOutcome {
+        let (geometry, triangle, b) = (
+            candidate.geometry,
+            candidate.triangle,
+            candidate.barycentrics,
+        );
+        // Most leaf hits are decided by the opacity map alone, without the shader's
+        // cache miss.
+        let decided = match self.opacity.at(geometry, triangle, b) {
+            Opacity::Opaque => Some(FilterOutcome::Opaque),
+            Opacity::Hole => Some(FilterOutcome::Hole),
+            Opacity::Mixed => None,
+        };
+        if let Some(outcome) = decided {
+            stats.filter_tests += 1;
+            stats.filter_rejections += u64::from(outcome != FilterOutcome::Opaque);
+            return outcome;
+        }
         let shader = self.shader_of(candidate);
         if !shader.needs_hit_filter() {
             return FilterOutcome::Opaque;
@@ -226,10 +242,19 @@ impl<'a> RenderScene<'a> {
         stats.filter_tests += 1;
         let outcome = if !(shader.double_sided || self.is_front_side(candidate, direction)) {
             FilterOutcome::Culled
-        } else if shader.is_opaque_at(self.uv_of(candidate)) {
-            FilterOutcome::Opaque
         } else {
-            FilterOutcome::Hole
+            match self.opacity.alpha_at(geometry, triangle, b) {
+                Opacity::Opaque => FilterOutcome::Opaque,
+                Opacity::Hole => FilterOutcome::Hole,
+                Opacity::Mixed => {
+                    stats.texture_alpha_tests += 1;
+                    if shader.is_opaque_at(self.uv_of(candidate)) {
+                        FilterOutcome::Opaque
+                    } else {
+                        FilterOutcome::Hole
+                    }
+                }
+            }
         };
         stats.filter_rejections += u64::from(outcome != FilterOutcome::Opaque);
         outcome

@@ -305,9 +305,70 @@ impl Texture {
         )
     }
 
+    /// The least and greatest alpha byte among the texels a bilinear sample can read at
+    /// any texel coordinate (`u · width − 0.5`, `v · height − 0.5`, as the footprint
+    /// computes them) in `[x[0], x[1]] × [y[0], y[1]]`. Coordinates must lie within
+    /// 2²² of the origin (the opacity maps check).
+    pub(crate) fn alpha_bounds(&self, x: [f64; 2], y: [f64; 2]) -> [u8; 2] {
+        let columns = self.wrap[0].texels_reached(x, self.width);
+        let rows = self.wrap[1].texels_reached(y, self.height);
+        let (mut least, mut most) = (u8::MAX, u8::MIN);
+        let mut row_bounds = |line: &[[u8; 4]]| match &columns {
+            TexelsReached::Run(run) => {
+                for texel in &line[run.clone()] {
+                    least = least.min(texel[3]);
+                    most = most.max(texel[3]);
+                }
+            }
+            TexelsReached::Scattered(columns) => {
+                for &column in columns {
+                    least = least.min(line[column][3]);
+                    most = most.max(line[column][3]);
+                }
+            }
+        };
+        let width = self.width as usize;
+        match rows {
+            TexelsReached::Run(run) => {
+                run.for_each(|r| row_bounds(&self.texels[r * width..][..width]))
+            }
+            TexelsReached::Scattered(rows) => rows
+                .into_iter()
+                .for_each(|r| row_bounds(&self.texels[r * width..][..width])),
+        }
+        [least, most]
+    }
+
     /// Heap bytes held.
     pub fn memory_bytes(&self) -> usize {
         self.texels.capacity() * 4
+    }
+}
+
+/// Texel indices along one axis: a run inside the image, or wrapped ones in order.
+enum TexelsReached {
+    /// `start..end`, no wrapping involved.
+    Run(std::ops::Range<usize>),
+    /// Distinct wrapped indices.
+    Scattered(Vec<usize>),
+}
+
+impl WrapMode {
+    /// The texel indices in `0..n` that footprints at coordinates in `range` read: the
+    /// wrapped `floor(c)` and `floor(c) + 1`.
+    fn texels_reached(self, range: [f64; 2], n: u32) -> TexelsReached {
+        let (first, last) = (range[0].floor() as i64, range[1].floor() as i64 + 1);
+        if first >= 0 && last < i64::from(n) {
+            return TexelsReached::Run(first as usize..last as usize + 1);
+        }
+        if last - first + 1 >= 2 * i64::from(n) {
+            return TexelsReached::Run(0..n as usize);
+        }
+        let mut seen = vec![false; n as usize];
+        for i in first..=last {
+            seen[self.wrap(i, i64::from(n)) as usize] = true;
+        }
+        TexelsReached::Scattered((0..n as usize).filter(|&i| seen[i]).collect())
     }
 }
 

@@ -11,6 +11,7 @@ use sylva_engine::geometry::{Geometry, GeometryLibrary};
 use sylva_engine::light::{DirectionalLight, LightSet, SkyLight};
 use sylva_engine::math::Ray;
 use sylva_engine::mesh::TriangleMesh;
+use sylva_engine::opacity::OpacityMaps;
 use sylva_engine::render::{RenderScene, SampleShading};
 use sylva_engine::sampling::SampleKey;
 use sylva_engine::shading::{Shader, ShaderId, ShaderTable, Texture, UvTransform};
@@ -55,6 +56,8 @@ struct Stack {
     top_level: TopLevel,
     shaders: ShaderTable,
     lights: LightSet,
+    /// Built over the masks: every oracle test checks the maps' decisions too.
+    opacity: OpacityMaps,
     /// Depth of each layer (its z), in instance order.
     depths: Vec<f32>,
 }
@@ -66,6 +69,7 @@ impl Stack {
             top_level: &self.top_level,
             shaders: &self.shaders,
             lights: &self.lights,
+            opacity: &self.opacity,
         }
     }
 }
@@ -114,11 +118,14 @@ fn stack_placed(
         depths.push(transform.translation.z);
     }
     let top_level = TopLevel::build(&library, &descs, BuildParams::BALANCED);
+    let shaders = ShaderTable::new(shaders);
+    let opacity = OpacityMaps::build(&library, &shaders);
     Stack {
         library,
         top_level,
-        shaders: ShaderTable::new(shaders),
+        shaders,
         lights: LightSet::default(),
+        opacity,
         depths,
     }
 }
@@ -334,6 +341,7 @@ fn a_thousand_coplanar_copies_behave_as_one() {
     ];
     let thousand = Stack {
         top_level: TopLevel::build(&copies, &descs, BuildParams::BALANCED),
+        opacity: OpacityMaps::build(&copies, &single.shaders),
         library: copies,
         shaders: single.shaders.clone(),
         lights: LightSet::default(),
@@ -444,6 +452,7 @@ fn single_sided_surfaces_are_seen_from_the_front_only_even_when_mirrored() {
             top_level: &top_level,
             shaders: &shaders,
             lights: &lights,
+            opacity: &OpacityMaps::default(),
         };
         let mut stats = TraversalStats::default();
         assert!(scene.closest(&front, &mut stats).is_some(), "{transform:?}");

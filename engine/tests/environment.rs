@@ -12,6 +12,7 @@ use sylva_engine::geometry::GeometryLibrary;
 use sylva_engine::interleave::LightSubsets;
 use sylva_engine::light::LightSet;
 use sylva_engine::math::Ray;
+use sylva_engine::opacity::OpacityMaps;
 use sylva_engine::render::{RenderScene, SampleShading};
 use sylva_engine::sampling::SampleKey;
 use sylva_engine::shading::{Shader, ShaderId, ShaderTable};
@@ -95,6 +96,7 @@ impl Plane {
             top_level: &self.top_level,
             shaders: &self.shaders,
             lights: &lights,
+            opacity: &OpacityMaps::default(),
         })
     }
 }

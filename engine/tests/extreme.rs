@@ -10,6 +10,7 @@ use sylva_engine::geometry::{Geometry, GeometryLibrary};
 use sylva_engine::light::LightSet;
 use sylva_engine::math::Ray;
 use sylva_engine::mesh::TriangleMesh;
+use sylva_engine::opacity::OpacityMaps;
 use sylva_engine::render::RenderScene;
 use sylva_engine::shading::{Shader, ShaderId, ShaderTable};
 use sylva_engine::tlas::{InstanceDesc, TopLevel};
@@ -106,6 +107,7 @@ fn extreme_instance_transforms_give_finite_normals_and_keep_the_outside_outside(
             top_level: &top_level,
             shaders: &shaders,
             lights: &lights,
+            opacity: &OpacityMaps::default(),
         };
         let size = transform
             .matrix3

@@ -11,6 +11,7 @@ use sylva_engine::film::{Film, FrameBuffer, Tile};
 use sylva_engine::geometry::{Geometry, GeometryLibrary};
 use sylva_engine::light::{DirectionalLight, LightSet, SkyLight};
 use sylva_engine::mesh::TriangleMesh;
+use sylva_engine::opacity::OpacityMaps;
 use sylva_engine::render::{RenderParams, RenderScene, render_frame, render_tile};
 use sylva_engine::shading::{Shader, ShaderId, ShaderTable, Texture};
 use sylva_engine::tlas::{InstanceDesc, TopLevel};
@@ -20,6 +21,7 @@ struct Fixture {
     top_level: TopLevel,
     shaders: ShaderTable,
     lights: LightSet,
+    opacity: OpacityMaps,
 }
 
 impl Fixture {
@@ -29,6 +31,7 @@ impl Fixture {
             top_level: &self.top_level,
             shaders: &self.shaders,
             lights: &self.lights,
+            opacity: &self.opacity,
         }
     }
 }
@@ -113,11 +116,13 @@ fn fixture() -> Fixture {
         }),
         environment: None,
     };
+    let opacity = OpacityMaps::build(&library, &shaders);
     Fixture {
         library,
         top_level,
         shaders,
         lights,
+        opacity,
     }
 }
 
@@ -190,6 +195,7 @@ fn render_in_sunlight(
         top_level,
         shaders,
         lights: &lights,
+        opacity: &OpacityMaps::build(library, shaders),
     };
     let camera = Camera {
         width: size,

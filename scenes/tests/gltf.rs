@@ -9,6 +9,7 @@ use sylva_engine::bvh::{BuildParams, TraversalStats};
 use sylva_engine::camera::CameraView;
 use sylva_engine::light::LightSet;
 use sylva_engine::math::Ray;
+use sylva_engine::opacity::OpacityMaps;
 use sylva_engine::render::RenderScene;
 use sylva_engine::shading::ShaderTable;
 use sylva_engine::tlas::TopLevel;
@@ -31,6 +32,7 @@ struct Queryable {
     top_level: TopLevel,
     shaders: ShaderTable,
     lights: LightSet,
+    opacity: OpacityMaps,
 }
 
 impl Queryable {
@@ -42,11 +44,13 @@ impl Queryable {
             BuildParams::BALANCED,
         );
         let shaders = ShaderTable::new(scene.shaders.clone());
+        let opacity = OpacityMaps::build(&scene.library, &shaders);
         Self {
             scene,
             top_level,
             shaders,
             lights: LightSet::default(),
+            opacity,
         }
     }
 
@@ -56,6 +60,7 @@ impl Queryable {
             top_level: &self.top_level,
             shaders: &self.shaders,
             lights: &self.lights,
+            opacity: &self.opacity,
         }
     }
 }

@@ -35,6 +35,7 @@ use sylva_engine::bvh::{BuildParams, TraversalStats};
 use sylva_engine::film::Tile;
 use sylva_engine::geometry::GeometryLibrary;
 use sylva_engine::light::LightSet;
+use sylva_engine::opacity::OpacityMaps;
 use sylva_engine::shading::ShaderTable;
 use sylva_engine::tlas::TopLevel;
 
@@ -220,6 +221,7 @@ pub fn init_render_world(
     world.init_resource::<GeometryLibrary>();
     world.init_resource::<TopLevel>();
     world.init_resource::<ShaderTable>();
+    world.init_resource::<OpacityMaps>();
     world.init_resource::<LightSet>();
     world.init_resource::<BuildSettings>();
     world.init_resource::<RenderSeed>();
@@ -270,6 +272,9 @@ pub fn frame_schedule() -> Schedule {
             assign_light_subsets.run_if(light_subset_inputs_changed),
         )
             .chain()
+            .in_set(RenderSystems::Plan),
+        build_opacity_maps
+            .run_if(opacity_inputs_changed)
             .in_set(RenderSystems::Plan),
         render_tiles
             .run_if(any_with_component::<sylva_engine::camera::Camera>)

@@ -14,6 +14,7 @@ use sylva_engine::film::{Film, FrameBuffer, Tile};
 use sylva_engine::geometry::GeometryLibrary;
 use sylva_engine::interleave::{LightInterleave, LightSubsets};
 use sylva_engine::light::{DirectionalLight, LightSet, SkyLight};
+use sylva_engine::opacity::OpacityMaps;
 use sylva_engine::render::{FramePlan, RenderParams, RenderScene, render_frame};
 use sylva_engine::sampling::mix64;
 use sylva_engine::shading::{Shader, ShaderTable};
@@ -193,6 +194,22 @@ pub fn shaders_changed(
     removed.read().count() > 0 || !changed.is_empty()
 }
 
+/// Run condition of [`build_opacity_maps`]: the meshes or the shaders changed.
+pub fn opacity_inputs_changed(library: Res<GeometryLibrary>, shaders: Res<ShaderTable>) -> bool {
+    library.is_changed() || shaders.is_changed()
+}
+
+/// Builds the [`OpacityMaps`] of the alpha-masked triangles on the render pool, so
+/// traversal decides most alpha tests without the texture.
+pub fn build_opacity_maps(
+    pool: Res<RenderPool>,
+    library: Res<GeometryLibrary>,
+    shaders: Res<ShaderTable>,
+    mut opacity: ResMut<OpacityMaps>,
+) {
+    *opacity = pool.install(|| OpacityMaps::build(&library, &shaders));
+}
+
 /// Packs shader entities into the dense [`ShaderTable`].
 pub fn compile_shaders(shaders: Query<&Shader>, mut table: ResMut<ShaderTable>) {
     let _span = tracing::info_span!("compile_shaders").entered();
@@ -345,6 +362,7 @@ pub fn render_tiles(
     top_level: Res<TopLevel>,
     shaders: Res<ShaderTable>,
     lights: Res<LightSet>,
+    opacity: Res<OpacityMaps>,
     seed: Res<RenderSeed>,
     origin: Res<WorldOrigin>,
     progress: Res<TileProgress>,
@@ -362,6 +380,7 @@ pub fn render_tiles(
         top_level: &top_level,
         shaders: &shaders,
         lights: &lights,
+        opacity: &opacity,
     };
     let on_tile = |tile: &Tile| {
         if let Some(callback) = &progress.0 {

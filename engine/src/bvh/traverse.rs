@@ -23,6 +23,9 @@ pub struct TraversalStats {
     pub primitive_tests: u64,
     /// Candidate hits handed to a hit filter (alpha tests).
     pub filter_tests: u64,
+    /// The part of `filter_tests` that sampled a texture: the opacity map left them
+    /// undecided (or the shader has no map).
+    pub texture_alpha_tests: u64,
     /// Candidate hits a filter rejected: transparency segments passed through.
     pub filter_rejections: u64,
     /// The part of `filter_rejections` met by closest-hit (camera) rays.
@@ -42,6 +45,7 @@ impl TraversalStats {
         self.nodes_visited += other.nodes_visited;
         self.primitive_tests += other.primitive_tests;
         self.filter_tests += other.filter_tests;
+        self.texture_alpha_tests += other.texture_alpha_tests;
         self.filter_rejections += other.filter_rejections;
         self.closest_filter_rejections += other.closest_filter_rejections;
         self.holes_passed += other.holes_passed;
