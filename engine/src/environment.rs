@@ -176,6 +176,10 @@ pub struct VirtualLight {
 pub struct VirtualLights {
     lights: Vec<VirtualLight>,
     cdf: Vec<f32>,
+    /// `guide[k]`: the CDF entries ≤ k / (guide.len() − 1), so a sample in bucket k
+    /// searches only `guide[k]..guide[k + 1]` (the guide-table method: the same index
+    /// as a binary search over the whole CDF, without its chain of dependent loads).
+    guide: Vec<u32>,
 }
 
 /// A rectangle of texels `[x0, x1) × [y0, y1)` and its energy.
@@ -303,7 +307,16 @@ impl VirtualLights {
         if let Some(last) = cdf.last_mut() {
             *last = 1.0;
         }
-        Self { lights, cdf }
+        // A power of two of buckets, so `u · buckets` is exact and bucket k holds
+        // exactly the u in [k / buckets, (k + 1) / buckets).
+        let buckets = cdf.len().next_power_of_two().clamp(1, 1 << 16);
+        let guide = (0..=buckets)
+            .map(|k| {
+                let at = k as f32 / buckets as f32;
+                cdf.partition_point(|&c| c <= at) as u32
+            })
+            .collect();
+        Self { lights, cdf, guide }
     }
 
     /// The lights.
@@ -324,12 +337,22 @@ impl VirtualLights {
     /// The light a uniform number `u` in [0, 1) picks, with probability `probability`.
     #[inline]
     pub fn sample(&self, u: f32) -> Option<&VirtualLight> {
-        let i = self
-            .cdf
-            .partition_point(|&c| c <= u)
-            .min(self.lights.len().checked_sub(1)?);
+        let i = self.cdf_index(u).min(self.lights.len().checked_sub(1)?);
         let light = &self.lights[i];
         (light.probability > 0.0).then_some(light)
+    }
+
+    /// The CDF entries ≤ `u`: `cdf.partition_point(|&c| c <= u)`, through the guide
+    /// table for `u` in [0, 1).
+    #[inline]
+    fn cdf_index(&self, u: f32) -> usize {
+        let buckets = self.guide.len().saturating_sub(1);
+        if !(0.0..1.0).contains(&u) || buckets == 0 {
+            return self.cdf.partition_point(|&c| c <= u);
+        }
+        let k = ((u * buckets as f32) as usize).min(buckets - 1);
+        let (lo, hi) = (self.guide[k] as usize, self.guide[k + 1] as usize);
+        lo + self.cdf[lo..hi].partition_point(|&c| c <= u)
     }
 
     /// Sum of the lights' irradiance.
@@ -563,6 +586,56 @@ mod tests {
             dof > 20 && chi2 < 1.65 * dof as f64,
             "χ² = {chi2} over {dof} bins"
         );
+    }
+
+    #[test]
+    fn the_guide_table_finds_the_binary_searchs_light() {
+        let mut rng = crate::sampling::SplitMix64(11);
+        let sky = VirtualLights::median_cut(&sky_with_sun(), 4096);
+        let uneven = |n: usize, rng: &mut crate::sampling::SplitMix64| {
+            let lights = (0..n)
+                .map(|i| VirtualLight {
+                    direction: Vec3::Y,
+                    // Some dark lights (empty CDF steps), some a thousand times brighter.
+                    irradiance: Vec3::splat(match i % 5 {
+                        0 => 0.0,
+                        1 => 1000.0 * rng.f32(),
+                        _ => rng.f32(),
+                    }),
+                    probability: 0.0,
+                })
+                .collect();
+            VirtualLights::from_lights(lights)
+        };
+        let sets = [
+            sky,
+            uneven(1, &mut rng),
+            uneven(3, &mut rng),
+            uneven(1000, &mut rng),
+        ];
+        for lights in &sets {
+            let buckets = (lights.guide.len() - 1) as f32;
+            let special = [0.0, 0.5, 1.0f32.next_down(), 1.0, -0.0, -1.0, 2.0, f32::NAN];
+            let near_edges = lights
+                .cdf
+                .iter()
+                .flat_map(|&c| [c.next_down(), c, c.next_up()]);
+            let bucket_edges = (0..=64).map(|k| (k as f32 / 64.0 * buckets).floor() / buckets);
+            let random = (0..100_000).map(|_| rng.f32());
+            for u in special
+                .into_iter()
+                .chain(near_edges)
+                .chain(bucket_edges)
+                .chain(random)
+            {
+                assert_eq!(
+                    lights.cdf_index(u),
+                    lights.cdf.partition_point(|&c| c <= u),
+                    "u = {u} over {} lights",
+                    lights.len()
+                );
+            }
+        }
     }
 
     #[test]
