@@ -829,6 +829,10 @@ fn info(args: SceneArgs) -> Result<()> {
         )
     });
     let tlas_time = start.elapsed();
+    let start = Instant::now();
+    let shaders = sylva::engine::ShaderTable::new(scene.shaders.clone());
+    let opacity = pool.install(|| sylva::engine::OpacityMaps::build(&scene.library, &shaders));
+    let opacity_time = start.elapsed();
     let total_time = command_start.elapsed();
     println!("scene            {} (seed {})", scene.name, args.seed);
     println!("species          {}", stats.species);
@@ -873,16 +877,19 @@ fn info(args: SceneArgs) -> Result<()> {
     );
     println!("instanced tris   {}", group(stats.instanced_triangles));
     println!(
-        "memory           {:.1} MB (geometry + BLAS {:.1} MB, TLAS {:.1} MB)",
-        (scene.library.memory_bytes() + tlas.memory_bytes()) as f64 / 1e6,
+        "memory           {:.1} MB (geometry + BLAS {:.1} MB, TLAS {:.1} MB, opacity maps {:.1} MB)",
+        (scene.library.memory_bytes() + tlas.memory_bytes() + opacity.memory_bytes()) as f64 / 1e6,
         scene.library.memory_bytes() as f64 / 1e6,
-        tlas.memory_bytes() as f64 / 1e6
+        tlas.memory_bytes() as f64 / 1e6,
+        opacity.memory_bytes() as f64 / 1e6
     );
     println!(
-        "build times      generation {:.2} s, BLAS {:.2} s, TLAS {:.1} ms ({} threads)",
+        "build times      generation {:.2} s, BLAS {:.2} s, TLAS {:.1} ms, opacity maps {:.1} ms ({} maps) ({} threads)",
         scene.generate_time.as_secs_f64(),
         scene.blas_time.as_secs_f64(),
         tlas_time.as_secs_f64() * 1e3,
+        opacity_time.as_secs_f64() * 1e3,
+        group(opacity.map_count() as u64),
         pool.threads()
     );
     println!(

@@ -66,7 +66,8 @@ struct MapHeader {
 /// [`ShaderTable`]. The default has no maps: every lookup is [`Opacity::Mixed`].
 #[derive(Clone, Debug, Default, Resource)]
 pub struct OpacityMaps {
-    /// Per geometry, the index of its first triangle in `triangle_maps`.
+    /// Per geometry, the index of its first triangle in `triangle_maps`, or [`NO_MAP`]
+    /// when none of its triangles has a map.
     first_triangle: Vec<u32>,
     /// Per triangle of every geometry in turn, its map (with [`SINGLE_SIDED`]) or
     /// [`NO_MAP`].
@@ -148,6 +149,11 @@ impl OpacityMaps {
                     })
                 })
                 .collect();
+            if local_layouts.is_empty() {
+                // No alpha-masked triangle (terrain, bark): no entries at all.
+                first_triangle.push(NO_MAP);
+                continue;
+            }
             first_triangle.push(triangle_maps.len() as u32);
             triangle_maps.extend(local_maps.into_iter().map(|m| {
                 if m == NO_MAP {
@@ -202,6 +208,9 @@ impl OpacityMaps {
             }
         }
         for (geometry, &first) in library.geometries.iter().zip(&first_triangle) {
+            if first == NO_MAP {
+                continue;
+            }
             let (mesh, first) = (&geometry.mesh, first as usize);
             for (t, m) in triangle_maps[first..first + mesh.triangle_count()]
                 .iter_mut()
@@ -244,6 +253,9 @@ impl OpacityMaps {
         let Some(&first) = self.first_triangle.get(geometry.0 as usize) else {
             return Opacity::Mixed;
         };
+        if first == NO_MAP {
+            return Opacity::Mixed;
+        }
         let Some(&entry) = self.triangle_maps.get(first as usize + triangle as usize) else {
             return Opacity::Mixed;
         };
