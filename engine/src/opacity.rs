@@ -116,8 +116,9 @@ impl OpacityMaps {
                         if !uvs.iter().all(|uv| uv.is_finite()) {
                             return NO_MAP;
                         }
-                        let bits = uvs.map(|uv| [uv.x.to_bits(), uv.y.to_bits()]);
-                        let key = (mesh.shaders[t], bits.as_flattened().try_into().unwrap());
+                        let [[a, b], [c, d], [e, f]] =
+                            uvs.map(|uv| [uv.x.to_bits(), uv.y.to_bits()]);
+                        let key = (mesh.shaders[t], [a, b, c, d, e, f]);
                         if let Some((last, index)) = previous
                             && last == key
                         {

@@ -243,7 +243,13 @@ impl<'a> RenderScene<'a> {
         let outcome = if !(shader.double_sided || self.is_front_side(candidate, direction)) {
             FilterOutcome::Culled
         } else {
-            match self.opacity.alpha_at(geometry, triangle, b) {
+            // A double-sided triangle's map has answered above (mixed, or no map).
+            let known = if shader.double_sided {
+                Opacity::Mixed
+            } else {
+                self.opacity.alpha_at(geometry, triangle, b)
+            };
+            match known {
                 Opacity::Opaque => FilterOutcome::Opaque,
                 Opacity::Hole => FilterOutcome::Hole,
                 Opacity::Mixed => {

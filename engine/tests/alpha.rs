@@ -461,3 +461,46 @@ fn single_sided_surfaces_are_seen_from_the_front_only_even_when_mirrored() {
         assert!(!scene.occluded(&back, &mut stats));
     }
 }
+
+/// A single-sided, alpha-masked quad whose mask is opaque everywhere: its opacity map
+/// decides every point, and still the back is culled before the map is believed.
+#[test]
+fn a_single_sided_masked_surface_is_culled_behind_even_where_its_map_is_opaque() {
+    let mut library = GeometryLibrary::default();
+    let g = library.add(Geometry::new("quad", quad(0), BuildParams::BALANCED).unwrap());
+    let opaque = Texture::from_srgba8(4, 4, vec![[80, 120, 40, 255]; 16]).unwrap();
+    let mut shader = Shader::alpha_masked(ShaderId(0), Vec3::ONE, Arc::new(opaque), 0.5);
+    shader.double_sided = false;
+    let shaders = ShaderTable::new(vec![shader]);
+    let opacity = OpacityMaps::build(&library, &shaders);
+    assert_eq!(opacity.map_count(), 2, "both triangles have maps");
+    let top_level = TopLevel::build(
+        &library,
+        &[InstanceDesc {
+            transform: Affine3A::IDENTITY,
+            geometry: g,
+        }],
+        BuildParams::BALANCED,
+    );
+    let lights = LightSet::default();
+    let scene = RenderScene {
+        geometry: &library,
+        top_level: &top_level,
+        shaders: &shaders,
+        lights: &lights,
+        opacity: &opacity,
+    };
+    let mut stats = TraversalStats::default();
+    for xy in [Vec2::new(0.3, 0.6), Vec2::new(0.7, 0.2)] {
+        let front = Ray::new(Vec3A::new(xy.x, xy.y, 2.0), -Vec3A::Z);
+        let back = Ray::new(Vec3A::new(xy.x, xy.y, -2.0), Vec3A::Z);
+        assert!(scene.closest(&front, &mut stats).is_some(), "{xy}");
+        assert!(scene.occluded(&front, &mut stats), "{xy}");
+        assert!(scene.closest(&back, &mut stats).is_none(), "{xy}");
+        assert!(!scene.occluded(&back, &mut stats), "{xy}");
+    }
+    assert_eq!(
+        stats.texture_alpha_tests, 0,
+        "the maps decided every alpha test"
+    );
+}
