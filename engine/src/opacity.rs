@@ -31,9 +31,6 @@ pub enum Opacity {
 
 /// A triangle without a map (not alpha-masked, or UVs the map cannot bound).
 const NO_MAP: u32 = u32::MAX;
-/// Flags the map of a single-sided triangle: [`OpacityMaps::at`] leaves it to the full
-/// filter, which must first cull the triangle's back.
-const SINGLE_SIDED: u32 = 1 << 31;
 /// Finest subdivision: 4⁷ = 16,384 sub-triangles, 4 KB per map.
 const MAX_LEVEL: u32 = 7;
 /// Texels a sub-triangle should cover at most (the level grows until it does).
@@ -60,6 +57,12 @@ const HOLE: u64 = 2;
 struct MapHeader {
     level: u32,
     first_word: u32,
+    /// The layout's shader shows one side only: [`OpacityMaps::at`] leaves it to the
+    /// full filter, which must first cull the triangle's back.
+    single_sided: bool,
+    /// False when no map could be built (its shader has no usable cut-off): every
+    /// lookup is [`Opacity::Mixed`].
+    usable: bool,
 }
 
 /// The opacity micromaps of every alpha-masked triangle of a [`GeometryLibrary`] under a
@@ -69,8 +72,7 @@ pub struct OpacityMaps {
     /// Per geometry, the index of its first triangle in `triangle_maps`, or [`NO_MAP`]
     /// when none of its triangles has a map.
     first_triangle: Vec<u32>,
-    /// Per triangle of every geometry in turn, its map (with [`SINGLE_SIDED`]) or
-    /// [`NO_MAP`].
+    /// Per triangle of every geometry in turn, its map or [`NO_MAP`].
     triangle_maps: Vec<u32>,
     /// Map headers.
     maps: Vec<MapHeader>,
@@ -141,6 +143,11 @@ impl OpacityMaps {
         let mut first_triangle = Vec::with_capacity(per_geometry.len());
         let mut triangle_maps = Vec::new();
         for (local_maps, local_layouts) in per_geometry {
+            if local_layouts.is_empty() {
+                // No alpha-masked triangle (terrain, bark): no entries at all.
+                first_triangle.push(NO_MAP);
+                continue;
+            }
             let renumber: Vec<u32> = local_layouts
                 .iter()
                 .map(|&(key, uvs)| {
@@ -150,11 +157,6 @@ impl OpacityMaps {
                     })
                 })
                 .collect();
-            if local_layouts.is_empty() {
-                // No alpha-masked triangle (terrain, bark): no entries at all.
-                first_triangle.push(NO_MAP);
-                continue;
-            }
             first_triangle.push(triangle_maps.len() as u32);
             triangle_maps.extend(local_maps.into_iter().map(|m| {
                 if m == NO_MAP {
@@ -165,10 +167,6 @@ impl OpacityMaps {
             }));
         }
 
-        if layouts.len() >= SINGLE_SIDED as usize {
-            // Entries could not flag single-sided maps: no maps at all (every test samples).
-            return Self::default();
-        }
         let wanted: Vec<u32> = layouts
             .iter()
             .map(|(shader, uvs)| wanted_level(shaders.get(*shader), uvs))
@@ -191,37 +189,16 @@ impl OpacityMaps {
 
         let mut maps = Vec::with_capacity(built.len());
         let mut words = Vec::new();
-        let mut usable = Vec::with_capacity(built.len());
-        for map in built {
-            usable.push(map.is_some());
-            match map {
-                Some(map) => {
-                    maps.push(MapHeader {
-                        level: map.level,
-                        first_word: words.len() as u32,
-                    });
-                    words.extend(map.words);
-                }
-                None => maps.push(MapHeader {
-                    level: 0,
-                    first_word: 0,
-                }),
-            }
-        }
-        for (geometry, &first) in library.geometries.iter().zip(&first_triangle) {
-            if first == NO_MAP {
-                continue;
-            }
-            let (mesh, first) = (&geometry.mesh, first as usize);
-            for (t, m) in triangle_maps[first..first + mesh.triangle_count()]
-                .iter_mut()
-                .enumerate()
-            {
-                if *m == NO_MAP || !usable[*m as usize] {
-                    *m = NO_MAP;
-                } else if !shaders.get(mesh.shaders[t]).double_sided {
-                    *m |= SINGLE_SIDED;
-                }
+        for (map, (shader, _)) in built.into_iter().zip(&layouts) {
+            let single_sided = !shaders.get(*shader).double_sided;
+            maps.push(MapHeader {
+                level: map.as_ref().map_or(0, |m| m.level),
+                first_word: words.len() as u32,
+                single_sided,
+                usable: map.is_some(),
+            });
+            if let Some(map) = map {
+                words.extend(map.words);
             }
         }
         Self {
@@ -237,20 +214,20 @@ impl OpacityMaps {
     /// triangles (their back must be culled first) and triangles without a map.
     #[inline]
     pub fn at(&self, geometry: GeometryId, triangle: u32, b: Vec3A) -> Opacity {
-        self.lookup(geometry, triangle, b, SINGLE_SIDED)
+        self.lookup(geometry, triangle, b, true)
     }
 
     /// The alpha test's answer at barycentrics `b` of `triangle` in `geometry`, as far as
     /// the map knows it, for a hit already known to be on a side the shader shows.
     #[inline]
     pub fn alpha_at(&self, geometry: GeometryId, triangle: u32, b: Vec3A) -> Opacity {
-        self.lookup(geometry, triangle, b, 0)
+        self.lookup(geometry, triangle, b, false)
     }
 
-    /// The map's state at `b`; [`Opacity::Mixed`] when the triangle's entry has a bit of
-    /// `refuse`.
+    /// The map's state at `b`; [`Opacity::Mixed`] for a single-sided layout when
+    /// `cull_first` (its back is not yet ruled out).
     #[inline]
-    fn lookup(&self, geometry: GeometryId, triangle: u32, b: Vec3A, refuse: u32) -> Opacity {
+    fn lookup(&self, geometry: GeometryId, triangle: u32, b: Vec3A, cull_first: bool) -> Opacity {
         let Some(&first) = self.first_triangle.get(geometry.0 as usize) else {
             return Opacity::Mixed;
         };
@@ -260,12 +237,13 @@ impl OpacityMaps {
         let Some(&entry) = self.triangle_maps.get(first as usize + triangle as usize) else {
             return Opacity::Mixed;
         };
-        if entry == NO_MAP || entry & refuse != 0 {
-            return Opacity::Mixed;
-        }
-        let Some(header) = self.maps.get((entry & !SINGLE_SIDED) as usize) else {
+        // NO_MAP names no header.
+        let Some(header) = self.maps.get(entry as usize) else {
             return Opacity::Mixed;
         };
+        if !header.usable || (cull_first && header.single_sided) {
+            return Opacity::Mixed;
+        }
         let Some(index) = subtriangle(header.level, b.y, b.z) else {
             return Opacity::Mixed;
         };
