@@ -220,7 +220,6 @@ enum Split {
 struct Scratch {
     bins: Vec<Bin>,
     right_cost: Vec<f32>,
-    right_extent: Vec<Extent>,
 }
 
 impl Scratch {
@@ -228,7 +227,6 @@ impl Scratch {
         Self {
             bins: vec![EMPTY_BIN; 3 * MAX_BINS],
             right_cost: vec![0.0; MAX_BINS],
-            right_extent: vec![Extent::EMPTY; MAX_BINS],
         }
     }
 }
@@ -474,49 +472,55 @@ impl Builder {
                 .reduce(|| vec![EMPTY_BIN; 3 * bins_per_axis], merge_bins);
             all_bins.copy_from_slice(&merged);
         } else {
-            all_bins.fill(EMPTY_BIN);
+            // Only the axes binned: the top level bins one.
+            for axis in (0..3).filter(|&axis| scale[axis] != 0.0) {
+                all_bins[axis * bins_per_axis..(axis + 1) * bins_per_axis].fill(EMPTY_BIN);
+            }
             fill_bins(refs, scale, min, bins_per_axis, all_bins);
         }
 
-        let mut best: Option<(f32, usize, usize, Extent, Extent)> = None;
+        // The sweep carries only the primitives' boxes: the centroid boxes matter only
+        // for the chosen split, and are gathered from its bins afterwards.
+        let mut best: Option<(f32, usize, usize)> = None;
         for axis in 0..3 {
             if scale[axis] == 0.0 {
                 continue;
             }
             let bins = &scratch.bins[axis * bins_per_axis..(axis + 1) * bins_per_axis];
             let right_cost = &mut scratch.right_cost;
-            let right_extent = &mut scratch.right_extent;
-            let (mut acc, mut count) = (Extent::EMPTY, 0u32);
+            let (mut acc, mut count) = (Aabb::EMPTY, 0u32);
             for i in (1..bins_per_axis).rev() {
-                acc = acc.union(bins[i].extent);
+                acc = acc.union(bins[i].extent.bounds);
                 count += bins[i].count;
-                right_extent[i] = acc;
                 right_cost[i] = if count == 0 {
                     f32::INFINITY
                 } else {
-                    acc.bounds.surface_area() * self.blocks(count as usize)
+                    acc.surface_area() * self.blocks(count as usize)
                 };
             }
-            let (mut acc, mut count) = (Extent::EMPTY, 0u32);
+            let (mut acc, mut count) = (Aabb::EMPTY, 0u32);
             for i in 1..bins_per_axis {
-                acc = acc.union(bins[i - 1].extent);
+                acc = acc.union(bins[i - 1].extent.bounds);
                 count += bins[i - 1].count;
                 if count == 0 || !right_cost[i].is_finite() {
                     continue;
                 }
-                let cost = acc.bounds.surface_area() * self.blocks(count as usize) + right_cost[i];
+                let cost = acc.surface_area() * self.blocks(count as usize) + right_cost[i];
                 if best.as_ref().is_none_or(|b| cost < b.0) {
-                    best = Some((cost, axis, i, acc, right_extent[i]));
+                    best = Some((cost, axis, i));
                 }
             }
         }
-        let Some((cost, axis, bin, left, right)) = best else {
+        let Some((cost, axis, bin)) = best else {
             return if n <= max_leaf {
                 Split::Leaf
             } else {
                 Split::Median
             };
         };
+        let bins = &scratch.bins[axis * bins_per_axis..(axis + 1) * bins_per_axis];
+        let side = |bins: &[Bin]| bins.iter().fold(Extent::EMPTY, |e, b| e.union(b.extent));
+        let (left, right) = (side(&bins[..bin]), side(&bins[bin..]));
         let area = extent.bounds.surface_area();
         let split_cost = self.params.traversal_cost * area + cost;
         let leaf_cost = self.blocks(n) * area;
