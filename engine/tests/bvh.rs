@@ -6,7 +6,7 @@ mod common;
 use common::*;
 use glam::{Affine3A, Vec3, Vec3A};
 use proptest::prelude::*;
-use sylva_engine::bvh::{BuildParams, Bvh, PADDING, TraversalStats, WIDTH};
+use sylva_engine::bvh::{BuildParams, BuildScratch, Bvh, PADDING, TraversalStats, WIDTH};
 use sylva_engine::geometry::{Geometry, GeometryId, GeometryLibrary};
 use sylva_engine::math::{Aabb, Ray};
 use sylva_engine::mesh::TriangleMesh;
@@ -222,6 +222,57 @@ fn build_is_identical_on_any_thread_count() {
         assert_eq!(one.prim_indices, three.prim_indices, "{name}: slot order");
         assert!(one.nodes == three.nodes, "{name}: binary nodes differ");
         assert!(one.wide == three.wide, "{name}: wide nodes differ");
+    }
+}
+
+/// A rebuild into a BVH and scratch memory that held another tree (larger, smaller,
+/// with unusable boxes, empty) gives exactly the fresh build's tree, at both levels.
+#[test]
+fn a_rebuild_in_used_memory_equals_a_fresh_build() {
+    let mut rng = TestRng::new(17);
+    let mut inputs: Vec<Vec<Aabb>> = [20_000, 300, 9_000]
+        .into_iter()
+        .map(|n| bounds_of(&random_mesh(&mut rng, n, 10.0, 0.3)))
+        .collect();
+    inputs[2][5] = Aabb::EMPTY;
+    inputs[2][77].max.x = f32::NAN;
+    inputs.push(Vec::new());
+    inputs.push(bounds_of(&random_mesh(&mut rng, 1, 1.0, 0.3)));
+    for (name, params) in BuildParams::PRESETS {
+        let mut reused = Bvh::default();
+        let mut scratch = BuildScratch::default();
+        for (i, bounds) in inputs.iter().enumerate() {
+            reused.rebuild(bounds, params, &mut scratch);
+            let fresh = Bvh::build(bounds, params);
+            assert_eq!(reused.prim_indices, fresh.prim_indices, "{name}, input {i}");
+            assert!(
+                reused.nodes == fresh.nodes,
+                "{name}, input {i}: binary nodes"
+            );
+            assert!(reused.wide == fresh.wide, "{name}, input {i}: wide nodes");
+        }
+    }
+    let lib = random_library(&mut rng, 4, 200);
+    let mut sets: Vec<Vec<InstanceDesc>> = [2_000, 150, 700]
+        .into_iter()
+        .map(|n| random_instances(&mut rng, n, 4, (-0.5, 0.7)))
+        .collect();
+    sets[2][3].transform = Affine3A::from_scale(Vec3::ZERO);
+    sets[2][9].geometry = GeometryId(99);
+    sets.push(Vec::new());
+    let mut reused = TopLevel::default();
+    for (i, descs) in sets.iter().enumerate() {
+        reused.rebuild(&lib, descs, BuildParams::TOP_LEVEL);
+        let fresh = TopLevel::build(&lib, descs, BuildParams::TOP_LEVEL);
+        assert_eq!(reused.instances, fresh.instances, "set {i}: records");
+        assert!(reused.bvh.nodes == fresh.bvh.nodes, "set {i}: nodes");
+        assert!(reused.bvh.wide == fresh.bvh.wide, "set {i}: wide nodes");
+        assert_eq!(reused.bvh.prim_indices, fresh.bvh.prim_indices, "set {i}");
+        assert_eq!(reused.outside, fresh.outside, "set {i}: outside");
+        assert_eq!(reused.skipped, fresh.skipped, "set {i}: skipped");
+        assert_eq!(reused.source_count, fresh.source_count, "set {i}");
+        assert_eq!(reused.built_sah_cost, fresh.built_sah_cost, "set {i}");
+        assert_eq!(reused.current_sah_cost, fresh.current_sah_cost, "set {i}");
     }
 }
 

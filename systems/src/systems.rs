@@ -158,7 +158,8 @@ pub fn rebuild_top_level(
             Err(refusal) => tracing::debug!(%refusal, "top level cannot be refitted"),
         }
     }
-    let built = pool.install(|| TopLevel::build(&library, &descs, settings.top_level));
+    pool.install(|| top_level.rebuild(&library, &descs, settings.top_level));
+    let built = &*top_level;
     if !built.skipped.ids.is_empty() {
         let named: Vec<String> = built
             .skipped
@@ -179,7 +180,6 @@ pub fn rebuild_top_level(
             }
         );
     }
-    *top_level = built;
     state.entities = entities;
     state.rebuilds += 1;
     state.last_build = start.elapsed();

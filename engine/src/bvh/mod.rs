@@ -11,7 +11,7 @@ mod traverse;
 mod validate;
 mod wide;
 
-pub use build::BuildParams;
+pub use build::{BuildParams, BuildScratch};
 pub use node::BvhNode;
 pub use refit::RefitError;
 pub use traverse::{LeafVisit, NodeRay, TraversalStats};

@@ -98,17 +98,20 @@ impl WideNode {
 ///
 /// The top [`PARALLEL_LEVELS`] wide levels are made first; the subtrees below them are
 /// collapsed on the rayon pool and appended in a fixed order, so the result does not
-/// depend on the thread count, and its vector is allocated at its exact size.
-pub fn collapse(binary: &[BvhNode]) -> Vec<WideNode> {
+/// depend on the thread count, and the result is written once, in place.
+/// The result replaces what `wide` held, in its memory.
+pub fn collapse_into(binary: &[BvhNode], wide: &mut Vec<WideNode>) {
+    wide.clear();
     let Some(root) = binary.first() else {
-        return Vec::new();
+        return;
     };
     if root.is_leaf() {
         let mut node = WideNode::empty();
         node.set_box(0, root.bounds());
         node.children[0] = root.first();
         node.counts[0] = root.count();
-        return vec![node];
+        wide.push(node);
+        return;
     }
     let mut top = Vec::new();
     let mut frontier = Vec::new();
@@ -133,16 +136,13 @@ pub fn collapse(binary: &[BvhNode]) -> Vec<WideNode> {
     // Copied in parallel straight into the result (an indexed collect): a serial copy
     // of the pieces, and the page faults of its fresh memory on one core, were a tenth
     // of a 365 k-instance top-level build.
-    (0..end)
-        .into_par_iter()
-        .map(|index| {
-            if index < top.len() {
-                return top[index];
-            }
-            let piece = starts.partition_point(|&start| start <= index) - 1;
-            pieces[piece][index - starts[piece]].with_children_offset(starts[piece] as u32)
-        })
-        .collect()
+    wide.par_extend((0..end).into_par_iter().map(|index| {
+        if index < top.len() {
+            return top[index];
+        }
+        let piece = starts.partition_point(|&start| start <= index) - 1;
+        pieces[piece][index - starts[piece]].with_children_offset(starts[piece] as u32)
+    }));
 }
 
 /// Wide levels made before the subtrees below them are collapsed in parallel (up to 64
