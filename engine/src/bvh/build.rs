@@ -220,6 +220,9 @@ enum Split {
 struct Scratch {
     bins: Vec<Bin>,
     right_cost: Vec<f32>,
+    /// Each primitive's bin on the one axis binned, in the node's order, written by
+    /// [`fill_bins`] and read by [`partition_by_bins`] (bins < 256).
+    prim_bins: Vec<[u8; 3]>,
 }
 
 impl Scratch {
@@ -227,6 +230,7 @@ impl Scratch {
         Self {
             bins: vec![EMPTY_BIN; 3 * MAX_BINS],
             right_cost: vec![0.0; MAX_BINS],
+            prim_bins: Vec::new(),
         }
     }
 }
@@ -423,8 +427,14 @@ impl Builder {
                     left,
                     right,
                 } => {
-                    let scale = axis_scale(scale, axis);
-                    let mid = partition(refs, |c| bin_on_axis(c, scale, min, bins) < bin);
+                    // Binning along one axis records each primitive's bin (a pair's
+                    // split is made without binning).
+                    let mid = if self.params.longest_axis_only && n > 2 {
+                        partition_by_bins(refs, &work.scratch.prim_bins[..n], axis, bin)
+                    } else {
+                        let scale = axis_scale(scale, axis);
+                        partition(refs, |c| bin_on_axis(c, scale, min, bins) < bin)
+                    };
                     (mid, left, right)
                 }
             };
@@ -501,22 +511,43 @@ impl Builder {
             scale
         };
         let all_bins = &mut scratch.bins[..3 * bins_per_axis];
+        // Only a one-axis partition reads the recorded bins (see `fill_bins`).
+        let record = self.params.longest_axis_only;
+        if record && scratch.prim_bins.len() < n {
+            scratch.prim_bins.resize(n, [0; 3]);
+        }
+        let prim_bins: &mut [[u8; 3]] = if record {
+            &mut scratch.prim_bins[..n]
+        } else {
+            &mut []
+        };
         if n >= PARALLEL_BINNING {
-            let merged = refs
-                .par_chunks(16 * 1024)
-                .map(|chunk| {
-                    let mut local = vec![EMPTY_BIN; 3 * bins_per_axis];
-                    fill_bins(chunk, scale, min, bins_per_axis, &mut local);
-                    local
-                })
-                .reduce(|| vec![EMPTY_BIN; 3 * bins_per_axis], merge_bins);
+            const CHUNK: usize = 16 * 1024;
+            let merged = if record {
+                refs.par_chunks(CHUNK)
+                    .zip(prim_bins.par_chunks_mut(CHUNK))
+                    .map(|(chunk, chunk_bins)| {
+                        let mut local = vec![EMPTY_BIN; 3 * bins_per_axis];
+                        fill_bins(chunk, scale, min, bins_per_axis, &mut local, chunk_bins);
+                        local
+                    })
+                    .reduce(|| vec![EMPTY_BIN; 3 * bins_per_axis], merge_bins)
+            } else {
+                refs.par_chunks(CHUNK)
+                    .map(|chunk| {
+                        let mut local = vec![EMPTY_BIN; 3 * bins_per_axis];
+                        fill_bins(chunk, scale, min, bins_per_axis, &mut local, &mut []);
+                        local
+                    })
+                    .reduce(|| vec![EMPTY_BIN; 3 * bins_per_axis], merge_bins)
+            };
             all_bins.copy_from_slice(&merged);
         } else {
             // Only the axes binned: the top level bins one.
             for axis in (0..3).filter(|&axis| scale[axis] != 0.0) {
                 all_bins[axis * bins_per_axis..(axis + 1) * bins_per_axis].fill(EMPTY_BIN);
             }
-            fill_bins(refs, scale, min, bins_per_axis, all_bins);
+            fill_bins(refs, scale, min, bins_per_axis, all_bins, prim_bins);
         }
 
         // The sweep carries only the primitives' boxes: the centroid boxes matter only
@@ -703,18 +734,40 @@ fn bin_indices(centroid: Vec3A, scale: Vec3A, min: Vec3A, bins: usize) -> [usize
     k.to_array().map(|v| (v.to_bits() & 0x7f_ffff) as usize)
 }
 
-/// Adds each primitive to its bin on every axis; `out` holds `bins` bins per axis.
-fn fill_bins(refs: &[PrimRef], scale: Vec3A, min: Vec3A, bins: usize, out: &mut [Bin]) {
+/// Adds each primitive to its bin on every axis; `out` holds `bins` bins per axis. When
+/// one axis is binned and `prim_bins` has an entry per primitive, `prim_bins[i][axis]`
+/// receives primitive `i`'s bin, so the partition that follows reads it instead of
+/// computing it again (over three axes, recording the bins cost more instructions than
+/// recomputing the one chosen).
+fn fill_bins(
+    refs: &[PrimRef],
+    scale: Vec3A,
+    min: Vec3A,
+    bins: usize,
+    out: &mut [Bin],
+    prim_bins: &mut [[u8; 3]],
+) {
     // Axes with scale 0 cannot be split: skip their bins.
     let active = [scale.x != 0.0, scale.y != 0.0, scale.z != 0.0];
     if active.iter().filter(|&&a| a).count() == 1 {
         let axis = active.iter().position(|&a| a).unwrap_or(0);
         // One axis (the top level bins only the longest): one bin per primitive.
         let out = &mut out[axis * bins..(axis + 1) * bins];
-        for r in refs {
-            let b = &mut out[bin_on_axis(r.centroid(), scale, min, bins)];
+        let mut add = |r: &PrimRef| {
+            let k = bin_on_axis(r.centroid(), scale, min, bins);
+            let b = &mut out[k];
             b.extent = b.extent.with(r);
             b.count += 1;
+            k as u8
+        };
+        if prim_bins.len() == refs.len() {
+            for (r, prim_bin) in refs.iter().zip(prim_bins) {
+                prim_bin[axis] = add(r);
+            }
+        } else {
+            refs.iter().for_each(|r| {
+                add(r);
+            });
         }
         return;
     }
@@ -747,6 +800,26 @@ fn partition(refs: &mut [PrimRef], goes_left: impl Fn(Vec3A) -> bool) -> usize {
     for i in 0..refs.len() {
         let r = refs[i];
         let is_left = goes_left(r.centroid());
+        refs[i] = refs[k];
+        refs[k] = r;
+        k += is_left as usize;
+    }
+    k
+}
+
+/// [`partition`] by the bins [`fill_bins`] recorded: primitive `i` goes left when its
+/// bin on `axis` is below `split`. Lomuto's loop reads position `i` before anything
+/// writes it, so `prim_bins[i]` is always the bin of the primitive it reads there.
+fn partition_by_bins(
+    refs: &mut [PrimRef],
+    prim_bins: &[[u8; 3]],
+    axis: usize,
+    split: usize,
+) -> usize {
+    let mut k = 0;
+    for (i, bin) in prim_bins.iter().enumerate().take(refs.len()) {
+        let r = refs[i];
+        let is_left = usize::from(bin[axis]) < split;
         refs[i] = refs[k];
         refs[k] = r;
         k += is_left as usize;
