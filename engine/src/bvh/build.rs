@@ -511,8 +511,10 @@ impl Builder {
             scale
         };
         let all_bins = &mut scratch.bins[..3 * bins_per_axis];
-        // Only a one-axis partition reads the recorded bins (see `fill_bins`).
-        let record = self.params.longest_axis_only;
+        // Only a one-axis partition reads the recorded bins (see `fill_bins`); a node
+        // binned in parallel gets the slots in any case, so its chunks zip with them
+        // (over three axes `fill_bins` leaves them unwritten).
+        let record = self.params.longest_axis_only || n >= PARALLEL_BINNING;
         if record && scratch.prim_bins.len() < n {
             scratch.prim_bins.resize(n, [0; 3]);
         }
@@ -523,24 +525,15 @@ impl Builder {
         };
         if n >= PARALLEL_BINNING {
             const CHUNK: usize = 16 * 1024;
-            let merged = if record {
-                refs.par_chunks(CHUNK)
-                    .zip(prim_bins.par_chunks_mut(CHUNK))
-                    .map(|(chunk, chunk_bins)| {
-                        let mut local = vec![EMPTY_BIN; 3 * bins_per_axis];
-                        fill_bins(chunk, scale, min, bins_per_axis, &mut local, chunk_bins);
-                        local
-                    })
-                    .reduce(|| vec![EMPTY_BIN; 3 * bins_per_axis], merge_bins)
-            } else {
-                refs.par_chunks(CHUNK)
-                    .map(|chunk| {
-                        let mut local = vec![EMPTY_BIN; 3 * bins_per_axis];
-                        fill_bins(chunk, scale, min, bins_per_axis, &mut local, &mut []);
-                        local
-                    })
-                    .reduce(|| vec![EMPTY_BIN; 3 * bins_per_axis], merge_bins)
-            };
+            let merged = refs
+                .par_chunks(CHUNK)
+                .zip(prim_bins.par_chunks_mut(CHUNK))
+                .map(|(chunk, chunk_bins)| {
+                    let mut local = vec![EMPTY_BIN; 3 * bins_per_axis];
+                    fill_bins(chunk, scale, min, bins_per_axis, &mut local, chunk_bins);
+                    local
+                })
+                .reduce(|| vec![EMPTY_BIN; 3 * bins_per_axis], merge_bins);
             all_bins.copy_from_slice(&merged);
         } else {
             // Only the axes binned: the top level bins one.
