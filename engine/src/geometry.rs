@@ -1,7 +1,7 @@
 //! Species geometry: each mesh with its bottom-level BVH, built once and shared by every
 //! instance, collected in the [`GeometryLibrary`].
 
-use crate::bvh::simd::{NodeKernel, with_node_kernel};
+use crate::bvh::simd::{NodeKernel, prefetch, with_node_kernel};
 use crate::bvh::{BuildParams, Bvh, LeafVisit, PADDING, TraversalStats};
 use crate::math::{Aabb, Ray};
 use crate::mesh::{MeshError, TriangleMesh};
@@ -214,6 +214,14 @@ impl<'a, K: NodeKernel> LeafRay<'a, K> {
         }
     }
 
+    /// Asks for the first triangle block of the leaf starting at slot `first`.
+    #[inline(always)]
+    fn prefetch(&self, first: usize) {
+        if let Some(block) = self.geometry.blocks.get(first / TRIANGLE_BLOCK) {
+            prefetch(block);
+        }
+    }
+
     /// [`Geometry::for_possible_hits`] with the prepared ray: `test(ray, block, lane)`.
     #[inline(always)]
     fn for_possible_hits(
@@ -256,6 +264,11 @@ impl<K: NodeKernel, A: FnMut(u32, &TriangleHit) -> bool> LeafVisit for ClosestLe
         });
         (t_max, false)
     }
+
+    #[inline(always)]
+    fn prefetch(&self, first: usize, _count: usize) {
+        self.leaf.prefetch(first);
+    }
 }
 
 /// The any-hit leaf test of a bottom level, inlined into the traversal loop: stops at
@@ -279,6 +292,11 @@ impl<K: NodeKernel, A: FnMut(u32, &TriangleHit) -> bool> LeafVisit for AnyLeaves
                 .is_some_and(|hit| accept(block.triangles[lane], &hit))
         });
         (t_max, *found)
+    }
+
+    #[inline(always)]
+    fn prefetch(&self, first: usize, _count: usize) {
+        self.leaf.prefetch(first);
     }
 }
 

@@ -450,8 +450,11 @@ impl TopLevel {
         stats.closest_rays += 1;
         let mut inner = TraversalStats::default();
         let mut best = None;
-        self.bvh
-            .traverse_closest_with(kernel, ray, stats, |slot, t_max| {
+        self.bvh.traverse_closest_with(
+            kernel,
+            ray,
+            stats,
+            |slot, t_max| {
                 let record = &self.instances[slot];
                 let geometry = &library.geometries[record.geometry.0 as usize];
                 let local = Ray {
@@ -482,7 +485,9 @@ impl TopLevel {
                     t: found.hit.t,
                 });
                 Some(found.hit.t)
-            });
+            },
+            |slot| prefetch(&self.instances[slot]),
+        );
         stats.add(&inner);
         best
     }
@@ -512,9 +517,11 @@ impl TopLevel {
     ) -> bool {
         stats.any_rays += 1;
         let mut inner = TraversalStats::default();
-        let occluded = self
-            .bvh
-            .traverse_any_with(kernel, ray, stats, |slot, t_max| {
+        let occluded = self.bvh.traverse_any_with(
+            kernel,
+            ray,
+            stats,
+            |slot, t_max| {
                 let record = &self.instances[slot];
                 let geometry = &library.geometries[record.geometry.0 as usize];
                 let local = Ray {
@@ -531,7 +538,9 @@ impl TopLevel {
                         t: hit.t,
                     })
                 })
-            });
+            },
+            |slot| prefetch(&self.instances[slot]),
+        );
         stats.add(&inner);
         occluded
     }

@@ -167,16 +167,21 @@ mod avx2 {
         }
     }
 
-    /// Starts loading the cache lines of `value`'s first and last bytes (SSE, so any
-    /// x86-64): for gathers in an order unrelated to memory, where each load misses.
+    /// Starts loading every cache line of `value` (SSE, so any x86-64): for gathers in an
+    /// order unrelated to memory, where each load misses.
     #[inline(always)]
     pub fn prefetch<T>(value: &T) {
         let first = std::ptr::from_ref(value).cast::<i8>();
-        // SAFETY: a prefetch is a hint that never faults; both addresses lie inside
+        let last = std::mem::size_of::<T>().max(1) - 1;
+        // SAFETY: a prefetch is a hint that never faults; every address lies inside
         // `value` (for a zero-sized one the first is a valid dangling address).
         unsafe {
-            _mm_prefetch::<_MM_HINT_T0>(first);
-            _mm_prefetch::<_MM_HINT_T0>(first.add(std::mem::size_of::<T>().max(1) - 1));
+            let mut offset = 0;
+            while offset < last {
+                _mm_prefetch::<_MM_HINT_T0>(first.add(offset));
+                offset += 64;
+            }
+            _mm_prefetch::<_MM_HINT_T0>(first.add(last));
         }
     }
 

@@ -2,7 +2,7 @@
 //! hit. The caller's closure tests a leaf's primitive slots (or one slot, through the
 //! slot-wise entry points), so alpha masks and instance transforms live outside the BVH.
 
-use super::simd::{NodeKernel, prefetch_node, with_node_kernel};
+use super::simd::{NodeKernel, prefetch, prefetch_node, with_node_kernel};
 use super::{Bvh, WIDTH, WideNode};
 use crate::math::{Ray, gamma};
 use glam::Vec3A;
@@ -125,6 +125,11 @@ impl NodeRay {
 pub trait LeafVisit {
     /// Tests one leaf; returns the new `t_max` and whether to stop.
     fn visit(&mut self, first: usize, count: usize, t_max: f32) -> (f32, bool);
+
+    /// Asks for the memory of the leaf over slots `first .. first + count` ahead of its
+    /// visit, when it has been put off behind a nearer child.
+    #[inline(always)]
+    fn prefetch(&self, _first: usize, _count: usize) {}
 }
 
 impl<F: FnMut(usize, usize, f32) -> (f32, bool)> LeafVisit for F {
@@ -188,6 +193,25 @@ impl Stack {
     }
 }
 
+/// The leaf visit of the slot-by-slot traversals: `visit` runs over a leaf's slots,
+/// `prefetch(slot)` asks for a put-off leaf's primitives.
+struct SlotLeaves<V, P> {
+    visit: V,
+    prefetch: P,
+}
+
+impl<V: FnMut(usize, usize, f32) -> (f32, bool), P: Fn(usize)> LeafVisit for SlotLeaves<V, P> {
+    #[inline(always)]
+    fn visit(&mut self, first: usize, count: usize, t_max: f32) -> (f32, bool) {
+        (self.visit)(first, count, t_max)
+    }
+
+    #[inline(always)]
+    fn prefetch(&self, first: usize, count: usize) {
+        (first..first + count).for_each(&self.prefetch);
+    }
+}
+
 impl Bvh {
     /// Finds the closest hit. `test(slot, t_max)` tests the primitive in leaf slot `slot`
     /// and returns its hit distance when it is hit closer than `t_max` (and accepted).
@@ -199,10 +223,12 @@ impl Bvh {
         stats: &mut TraversalStats,
         test: impl FnMut(usize, f32) -> Option<f32>,
     ) -> f32 {
-        with_node_kernel!(kernel => self.traverse_closest_with(kernel, ray, stats, test))
+        with_node_kernel!(kernel => self.traverse_closest_with(kernel, ray, stats, test, |_| {}))
     }
 
-    /// [`traverse_closest`](Self::traverse_closest) with the box tests of `kernel`.
+    /// [`traverse_closest`](Self::traverse_closest) with the box tests of `kernel`;
+    /// `prefetch(slot)` asks for the memory `test` will read for `slot` when its leaf is
+    /// put off behind a nearer child.
     #[inline(always)]
     pub fn traverse_closest_with(
         &self,
@@ -210,16 +236,18 @@ impl Bvh {
         ray: &Ray,
         stats: &mut TraversalStats,
         mut test: impl FnMut(usize, f32) -> Option<f32>,
+        prefetch: impl Fn(usize),
     ) -> f32 {
         let mut t_max = ray.t_max;
-        kernel.traverse(self, ray, stats, &mut |first, count, _| {
+        let visit = |first, count, _| {
             for slot in first..first + count {
                 if let Some(hit_t) = test(slot, t_max) {
                     t_max = hit_t;
                 }
             }
             (t_max, false)
-        });
+        };
+        kernel.traverse(self, ray, stats, &mut SlotLeaves { visit, prefetch });
         t_max
     }
 
@@ -231,10 +259,11 @@ impl Bvh {
         stats: &mut TraversalStats,
         test: impl FnMut(usize, f32) -> bool,
     ) -> bool {
-        with_node_kernel!(kernel => self.traverse_any_with(kernel, ray, stats, test))
+        with_node_kernel!(kernel => self.traverse_any_with(kernel, ray, stats, test, |_| {}))
     }
 
-    /// [`traverse_any`](Self::traverse_any) with the box tests of `kernel`.
+    /// [`traverse_any`](Self::traverse_any) with the box tests of `kernel`; `prefetch`
+    /// as for [`traverse_closest_with`](Self::traverse_closest_with).
     #[inline(always)]
     pub fn traverse_any_with(
         &self,
@@ -242,22 +271,24 @@ impl Bvh {
         ray: &Ray,
         stats: &mut TraversalStats,
         mut test: impl FnMut(usize, f32) -> bool,
+        prefetch: impl Fn(usize),
     ) -> bool {
         let mut found = false;
-        kernel.traverse(self, ray, stats, &mut |first, count, t| {
+        let visit = |first, count, t| {
             found = (first..first + count).any(|slot| test(slot, t));
             (t, found)
-        });
+        };
+        kernel.traverse(self, ray, stats, &mut SlotLeaves { visit, prefetch });
         found
     }
 
     /// Asks for a pending interior node's memory ahead of its visit: node loads that miss
     /// the cache are a fifth of traversal time.
     #[inline(always)]
-    fn prefetch(&self, entry: Pending) {
-        if entry.count == 0
-            && let Some(node) = self.wide.get(entry.first as usize)
-        {
+    fn prefetch(&self, entry: Pending, leaves: &impl LeafVisit) {
+        if entry.count > 0 {
+            leaves.prefetch(entry.first as usize, entry.count as usize);
+        } else if let Some(node) = self.wide.get(entry.first as usize) {
             prefetch_node(node);
         }
     }
@@ -298,6 +329,8 @@ impl Bvh {
                 }
             } else {
                 let node = &self.wide[current.first as usize];
+                // The children's line is read only after the box test: ask for it now.
+                prefetch(&node.children);
                 nodes += 1;
                 let (t, mut mask) = kernel.hit_children(&node_ray, node, t_max);
                 let child = |lane: usize| Pending {
@@ -316,7 +349,7 @@ impl Bvh {
                     mask &= mask - 1;
                     if mask == 0 {
                         let (near, far) = if b.t < a.t { (b, a) } else { (a, b) };
-                        self.prefetch(far);
+                        self.prefetch(far, leaves);
                         stack.push(far);
                         current = near;
                         continue;
@@ -340,7 +373,7 @@ impl Bvh {
                         n += 1;
                     }
                     for entry in &hits[..n - 1] {
-                        self.prefetch(*entry);
+                        self.prefetch(*entry, leaves);
                         stack.push(*entry);
                     }
                     current = hits[n - 1];
