@@ -9,8 +9,11 @@ use glam::{Vec3A, Vec4};
 #[derive(Clone, Copy, Debug)]
 pub struct WatertightRay {
     origin: Vec3A,
-    /// The origin's coordinates in the order `kx`, `ky`, `kz`.
-    origin_permuted: [f32; 3],
+    /// The origin's coordinates in the order `kx`, `ky`, `kz`, in f64 (converted once
+    /// per ray, not at every leaf).
+    origin_permuted: [f64; 3],
+    /// The x and y shear constants in f64.
+    shear_xy: [f64; 2],
     kx: usize,
     ky: usize,
     kz: usize,
@@ -97,7 +100,9 @@ impl WatertightRay {
         let shear = Vec3A::new(along[kx & 3], along[ky & 3], 1.0) / Vec3A::new(dz, dz, dz);
         Self {
             origin: ray.origin,
-            origin_permuted: [from_origin[kx & 3], from_origin[ky & 3], from_origin[kz]],
+            origin_permuted: [from_origin[kx & 3], from_origin[ky & 3], from_origin[kz]]
+                .map(f64::from),
+            shear_xy: [f64::from(shear.x), f64::from(shear.y)],
             kx,
             ky,
             kz,
@@ -186,11 +191,11 @@ impl WatertightRay {
     /// What the block check needs: the axis order `(kx, ky, kz)`, the origin in that
     /// order and the x and y shear constants.
     #[inline(always)]
-    pub(crate) fn block_setup(&self) -> ([usize; 3], [f32; 3], [f32; 2]) {
+    pub(crate) fn block_setup(&self) -> ([usize; 3], [f64; 3], [f64; 2]) {
         (
             [self.kx, self.ky, self.kz],
             self.origin_permuted,
-            [self.shear.x, self.shear.y],
+            self.shear_xy,
         )
     }
 
@@ -199,7 +204,7 @@ impl WatertightRay {
     #[inline(always)]
     fn relative_corners(&self, block: &TriangleBlock, lane: usize) -> [(f64, f64, f64); 3] {
         let lane = lane & 3;
-        let [ox, oy, oz] = self.origin_permuted.map(f64::from);
+        let [ox, oy, oz] = self.origin_permuted;
         // Plain indexing: array `map` here stayed an out-of-line call per lane test.
         let relative = |c: usize| {
             let corner = &block.corners[c];
@@ -220,10 +225,8 @@ impl WatertightRay {
     /// step).
     #[inline(always)]
     fn sheared_xy(&self, (x, y, z): (f64, f64, f64)) -> (f64, f64) {
-        (
-            x - f64::from(self.shear.x) * z,
-            y - f64::from(self.shear.y) * z,
-        )
+        let [sx, sy] = self.shear_xy;
+        (x - sx * z, y - sy * z)
     }
 
     /// [`intersect_exact`](Self::intersect_exact) on lane `lane` of `block`, bit for bit.
@@ -504,7 +507,7 @@ mod tests {
                     }
                     assert_eq!((w.kx, w.ky, w.kz), (kx, ky, kz), "direction {d}");
                     let o = ray.origin;
-                    assert_eq!(w.origin_permuted, [o[kx], o[ky], o[kz]]);
+                    assert_eq!(w.origin_permuted, [o[kx], o[ky], o[kz]].map(f64::from));
                     let shear = [d[kx] / d[kz], d[ky] / d[kz], 1.0 / d[kz]];
                     for (got, want) in w.shear.to_array().into_iter().zip(shear) {
                         assert!(got.to_bits() == want.to_bits() || (got.is_nan() && want.is_nan()));

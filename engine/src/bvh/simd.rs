@@ -253,8 +253,8 @@ mod avx2 {
     #[inline]
     fn possible_hits(ray: &WatertightRay, block: &TriangleBlock, lanes: usize) -> u32 {
         let ([kx, ky, kz], origin, [sx, sy]) = ray.block_setup();
-        let [ox, oy, oz] = origin.map(|o| _mm256_set1_pd(f64::from(o)));
-        let (sx, sy) = (_mm256_set1_pd(f64::from(sx)), _mm256_set1_pd(f64::from(sy)));
+        let [ox, oy, oz] = origin.map(|o| _mm256_set1_pd(o));
+        let (sx, sy) = (_mm256_set1_pd(sx), _mm256_set1_pd(sy));
         // SAFETY: a Vec4 holds four f32.
         let load =
             |v: &Vec4| unsafe { _mm256_cvtps_pd(_mm_loadu_ps(std::ptr::from_ref(v).cast())) };
