@@ -97,7 +97,7 @@ impl Geometry {
         if self.bvh.bounds().is_empty() {
             return Aabb::EMPTY;
         }
-        self.support.transformed_bounds(transform)
+        crate::bvh::simd::transformed_bounds(&self.support, transform)
     }
 
     /// Closest hit with `0 < t < ray.t_max` that `accept(triangle, hit)` keeps.
