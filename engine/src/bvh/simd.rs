@@ -142,7 +142,7 @@ fn hit_half(ray: &NodeRay, node: &WideNode, first: usize, t_max: f32) -> (Vec4, 
 }
 
 #[cfg(target_arch = "x86_64")]
-pub use avx2::{Avx2, prefetch, prefetch_node};
+pub use avx2::{Avx2, prefetch, prefetch_children, prefetch_node};
 
 /// Prefetching is an x86 hint here; elsewhere nothing.
 #[cfg(not(target_arch = "x86_64"))]
@@ -153,6 +153,11 @@ pub fn prefetch_node(_node: &WideNode) {}
 #[cfg(not(target_arch = "x86_64"))]
 #[inline(always)]
 pub fn prefetch<T>(_value: &T) {}
+
+/// Prefetching is an x86 hint here; elsewhere nothing.
+#[cfg(not(target_arch = "x86_64"))]
+#[inline(always)]
+pub fn prefetch_children(_node: &WideNode) {}
 
 #[cfg(target_arch = "x86_64")]
 #[expect(
@@ -181,6 +186,15 @@ mod avx2 {
             // inside `node`.
             unsafe { _mm_prefetch::<_MM_HINT_T0>(base.add(line * 64)) };
         }
+    }
+
+    /// Starts loading the cache line of `node`'s child references and counts (its last:
+    /// a node is 64-byte aligned), which its visit reads only after the box test.
+    #[inline(always)]
+    pub fn prefetch_children(node: &WideNode) {
+        // SAFETY: a prefetch is a hint that never faults, and the address lies inside
+        // `node`.
+        unsafe { _mm_prefetch::<_MM_HINT_T0>(std::ptr::from_ref(&node.children).cast::<i8>()) };
     }
 
     /// Starts loading every cache line of `value` (SSE, so any x86-64): for gathers in an

@@ -2,7 +2,7 @@
 //! hit. The caller's closure tests a leaf's primitive slots (or one slot, through the
 //! slot-wise entry points), so alpha masks and instance transforms live outside the BVH.
 
-use super::simd::{NodeKernel, prefetch, prefetch_node, with_node_kernel};
+use super::simd::{NodeKernel, prefetch_children, prefetch_node, with_node_kernel};
 use super::{Bvh, WIDTH, WideNode};
 use crate::math::{Ray, gamma};
 use glam::Vec3A;
@@ -330,7 +330,7 @@ impl Bvh {
             } else {
                 let node = &self.wide[current.first as usize];
                 // The children's line is read only after the box test: ask for it now.
-                prefetch(&node.children);
+                prefetch_children(node);
                 nodes += 1;
                 let (t, mut mask) = kernel.hit_children(&node_ray, node, t_max);
                 let child = |lane: usize| Pending {
