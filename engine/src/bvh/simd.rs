@@ -1,8 +1,9 @@
 //! The box test of a wide node on two kernels that give the same bits: a portable one
 //! (two SSE halves through glam) and AVX2 (one 8-lane register per coordinate), picked
-//! once at run time. This module holds the engine's only `unsafe`: calls into
-//! `#[target_feature]` functions, allowed by an [`Avx2`] value that exists only when the
-//! CPU has AVX2.
+//! once at run time; the same choice for the triangle blocks' edge check and the
+//! instances' support-function boxes, and the prefetch hints. This module holds the
+//! engine's only `unsafe`: calls into `#[target_feature]` functions, allowed by an
+//! [`Avx2`] value that exists only when the CPU has AVX2.
 
 use super::traverse::{FAR_SCALE, LeafVisit, NEAR_SCALE, NodeRay};
 use super::{Bvh, TraversalStats, WIDTH, WideNode};
