@@ -122,6 +122,12 @@ impl DiscontinuityFilter {
         if n <= 1 {
             return out;
         }
+        // Each pixel's light once, not once per window that holds it (N² divisions).
+        let lights: Vec<Vec3> = radiance
+            .par_iter()
+            .zip(albedo)
+            .map(|(r, a)| *r / *a)
+            .collect();
         // Rows in parallel on the current rayon pool; each pixel's result depends only on
         // the inputs, so the image is the same for any thread count.
         out.par_chunks_mut(w).enumerate().for_each(|(y, row)| {
@@ -142,7 +148,7 @@ impl DiscontinuityFilter {
                         };
                         let j = ny * w + nx;
                         if j == i || (self.same_surface(here, &surfaces[j]) && demodulable(j)) {
-                            light += radiance[j] / albedo[j];
+                            light += lights[j];
                             count += 1;
                         }
                     }
