@@ -114,7 +114,6 @@ impl DiscontinuityFilter {
             "filter buffers must hold width × height pixels"
         );
         const DARKEST: f32 = 1e-4;
-        let demodulable = |i: usize| albedo[i].min_element() > DARKEST;
         let n = self.window as isize;
         // A centred window: offsets -(n/2) .. n - 1 - n/2 cover every pixel class once.
         let (lo, hi) = (-(n / 2), n - 1 - n / 2);
@@ -122,32 +121,30 @@ impl DiscontinuityFilter {
         if n <= 1 {
             return out;
         }
-        // Each pixel's light once, not once per window that holds it (N² divisions).
-        let lights: Vec<Vec3> = radiance
+        // Per pixel once, not once per window that holds it (N² times): its light, and
+        // whether it takes part (a surface, with an albedo bright enough to divide by).
+        let (lights, usable): (Vec<Vec3>, Vec<bool>) = radiance
             .par_iter()
             .zip(albedo)
-            .map(|(r, a)| *r / *a)
-            .collect();
+            .zip(surfaces)
+            .map(|((r, a), s)| (*r / *a, s.is_surface() && a.min_element() > DARKEST))
+            .unzip();
         // Rows in parallel on the current rayon pool; each pixel's result depends only on
         // the inputs, so the image is the same for any thread count.
         out.par_chunks_mut(w).enumerate().for_each(|(y, row)| {
+            let rows = y.saturating_add_signed(lo)..=y.saturating_add_signed(hi).min(h - 1);
             for (x, pixel) in row.iter_mut().enumerate() {
                 let i = y * w + x;
-                let here = &surfaces[i];
-                if !here.is_surface() || !demodulable(i) {
+                if !usable[i] {
                     continue;
                 }
+                let here = &surfaces[i];
+                let columns = x.saturating_add_signed(lo)..=x.saturating_add_signed(hi).min(w - 1);
                 let (mut light, mut count) = (Vec3::ZERO, 0u32);
-                for dy in lo..=hi {
-                    let Some(ny) = y.checked_add_signed(dy).filter(|&v| v < h) else {
-                        continue;
-                    };
-                    for dx in lo..=hi {
-                        let Some(nx) = x.checked_add_signed(dx).filter(|&v| v < w) else {
-                            continue;
-                        };
+                for ny in rows.clone() {
+                    for nx in columns.clone() {
                         let j = ny * w + nx;
-                        if j == i || (self.same_surface(here, &surfaces[j]) && demodulable(j)) {
+                        if j == i || (usable[j] && self.same_surface(here, &surfaces[j])) {
                             light += lights[j];
                             count += 1;
                         }
