@@ -777,6 +777,18 @@ fn output_images_record_how_they_were_made() {
     std::fs::remove_dir_all(dir).ok();
 }
 
+/// Per-pixel error of `image` against `reference`, channels averaged, its mean over the
+/// image removed.
+fn centred_error(image: &[[f32; 4]], reference: &[[f32; 4]]) -> Vec<f64> {
+    let error: Vec<f64> = image
+        .iter()
+        .zip(reference)
+        .map(|(i, r)| (0..3).map(|c| f64::from(i[c] - r[c])).sum::<f64>() / 3.0)
+        .collect();
+    let mean = error.iter().sum::<f64>() / error.len() as f64;
+    error.into_iter().map(|e| e - mean).collect()
+}
+
 /// Error of `image` against `reference` (both `width` wide): relative MSE (per channel,
 /// `(i − r)² / (r² + 0.01)`, averaged), and the share of the squared error (its mean
 /// removed, channels averaged) that repeats with period `n` in x and y — the mean error
@@ -796,18 +808,13 @@ fn relative_mse_and_periodic_share(
         .map(|(i, r)| (i - r).powi(2) / (r * r + 0.01))
         .sum::<f64>()
         / (3 * image.len()) as f64;
-    let error: Vec<f64> = image
-        .iter()
-        .zip(reference)
-        .map(|(i, r)| (0..3).map(|c| f64::from(i[c] - r[c])).sum::<f64>() / 3.0)
-        .collect();
-    let mean = error.iter().sum::<f64>() / error.len() as f64;
+    let error = centred_error(image, reference);
     let (w, h) = (width - width % n, height - height % n);
     let mut class_sum = vec![0.0; n * n];
     let mut total = 0.0;
     for y in 0..h {
         for x in 0..w {
-            let e = error[y * width + x] - mean;
+            let e = error[y * width + x];
             class_sum[(y % n) * n + x % n] += e;
             total += e * e;
         }
@@ -832,18 +839,13 @@ fn low_frequency_error(
     block: usize,
 ) -> f64 {
     let height = image.len() / width;
-    let error: Vec<f64> = image
-        .iter()
-        .zip(reference)
-        .map(|(i, r)| (0..3).map(|c| f64::from(i[c] - r[c])).sum::<f64>() / 3.0)
-        .collect();
-    let mean = error.iter().sum::<f64>() / error.len() as f64;
+    let error = centred_error(image, reference);
     let (columns, rows) = (width / block, height / block);
     let mut energy = 0.0;
     for by in 0..rows {
         for bx in 0..columns {
             let sum: f64 = (0..block * block)
-                .map(|k| error[(by * block + k / block) * width + bx * block + k % block] - mean)
+                .map(|k| error[(by * block + k / block) * width + bx * block + k % block])
                 .sum();
             energy += (sum / (block * block) as f64).powi(2);
         }
