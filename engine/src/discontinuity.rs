@@ -21,8 +21,11 @@ pub struct GuidedImage<'a> {
     pub height: u32,
     /// Mean radiance per pixel.
     pub radiance: &'a [Vec3],
-    /// Mean albedo per pixel (what the radiance was modulated by).
+    /// Mean albedo per pixel (what the reflected radiance was modulated by).
     pub albedo: &'a [Vec3],
+    /// Mean emitted radiance per pixel: the part of `radiance` the filter leaves as it
+    /// is (emission is the surface's own, like its texture, not light it received).
+    pub emission: &'a [Vec3],
     /// The surface each pixel saw first.
     pub surfaces: &'a [SurfaceGuide],
 }
@@ -106,11 +109,15 @@ impl DiscontinuityFilter {
             height,
             radiance,
             albedo,
+            emission,
             surfaces,
         } = image;
         let (w, h) = (width as usize, height as usize);
         assert!(
-            radiance.len() == w * h && albedo.len() == w * h && surfaces.len() == w * h,
+            radiance.len() == w * h
+                && albedo.len() == w * h
+                && emission.len() == w * h
+                && surfaces.len() == w * h,
             "filter buffers must hold width × height pixels"
         );
         const DARKEST: f32 = 1e-4;
@@ -123,11 +130,22 @@ impl DiscontinuityFilter {
         }
         // Per pixel once, not once per window that holds it (N² times): its light, and
         // whether it takes part (a surface, with an albedo bright enough to divide by).
+        // Emission comes off before dividing and goes back on after; where the film's
+        // mean and this frame's emission disagree (emissive edges) the received light
+        // is kept from going negative.
         let (lights, usable): (Vec<Vec3>, Vec<bool>) = radiance
             .par_iter()
             .zip(albedo)
+            .zip(emission)
             .zip(surfaces)
-            .map(|((r, a), s)| (*r / *a, s.is_surface() && a.min_element() > DARKEST))
+            .map(|(((r, a), e), s)| {
+                let received = if *e == Vec3::ZERO {
+                    *r
+                } else {
+                    (*r - *e).max(Vec3::ZERO)
+                };
+                (received / *a, s.is_surface() && a.min_element() > DARKEST)
+            })
             .unzip();
         // Rows in parallel on the current rayon pool; each pixel's result depends only on
         // the inputs, so the image is the same for any thread count.
@@ -151,6 +169,9 @@ impl DiscontinuityFilter {
                     }
                 }
                 *pixel = albedo[i] * light / count as f32;
+                if emission[i] != Vec3::ZERO {
+                    *pixel += emission[i];
+                }
             }
         });
         out
@@ -193,6 +214,9 @@ mod tests {
         (radiance, albedo, surfaces)
     }
 
+    /// No emission, for images of up to 64 pixels.
+    static DARK: [Vec3; 64] = [Vec3::ZERO; 64];
+
     fn image<'a>(
         width: u32,
         height: u32,
@@ -205,7 +229,42 @@ mod tests {
             height,
             radiance,
             albedo,
+            emission: &DARK[..radiance.len()],
             surfaces,
+        }
+    }
+
+    #[test]
+    fn emission_stays_sharp_while_received_light_is_averaged() {
+        let (radiance, albedo, surfaces) = two_planes();
+        let plain =
+            DiscontinuityFilter::for_pattern(4).apply(&image(8, 8, &radiance, &albedo, &surfaces));
+        // Every third pixel glows on top of the light it receives.
+        let emission: Vec<Vec3> = (0..64)
+            .map(|i| {
+                if i % 3 == 0 {
+                    Vec3::new(4.0, 2.0, 1.0)
+                } else {
+                    Vec3::ZERO
+                }
+            })
+            .collect();
+        let glowing: Vec<Vec3> = radiance
+            .iter()
+            .zip(&emission)
+            .map(|(r, e)| *r + *e)
+            .collect();
+        let filtered = DiscontinuityFilter::for_pattern(4).apply(&GuidedImage {
+            emission: &emission,
+            ..image(8, 8, &glowing, &albedo, &surfaces)
+        });
+        for i in 0..64 {
+            let expected = plain[i] + emission[i];
+            assert!(
+                (filtered[i] - expected).abs().max_element() < 1e-5 * expected.max_element(),
+                "pixel {i}: {} against {expected}",
+                filtered[i]
+            );
         }
     }
 

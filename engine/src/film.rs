@@ -57,6 +57,8 @@ pub struct TileResult {
     pub counts: Vec<u32>,
     /// Sum of the accepted samples' albedos per pixel.
     pub albedo_sums: Vec<Vec3>,
+    /// Sum of the accepted samples' emitted radiance per pixel (part of `sums`).
+    pub emission_sums: Vec<Vec3>,
     /// The surface of each pixel's first accepted sample.
     pub surfaces: Vec<SurfaceGuide>,
     /// Samples dropped because they were NaN or infinite.
@@ -78,6 +80,8 @@ pub struct FrameBuffer {
     pub counts: Vec<u32>,
     /// Per-pixel sums of the accepted samples' albedos (see [`TileResult`]).
     pub albedo_sums: Vec<Vec3>,
+    /// Per-pixel sums of the accepted samples' emitted radiance (see [`TileResult`]).
+    pub emission_sums: Vec<Vec3>,
     /// Per-pixel surface of the first accepted sample.
     pub surfaces: Vec<SurfaceGuide>,
     /// NaN/Inf samples dropped in this frame.
@@ -104,6 +108,7 @@ impl FrameBuffer {
             sums: vec![Vec3::ZERO; n],
             counts: vec![0; n],
             albedo_sums: vec![Vec3::ZERO; n],
+            emission_sums: vec![Vec3::ZERO; n],
             surfaces: vec![SurfaceGuide::NONE; n],
             rejected: 0,
             stats: TraversalStats::default(),
@@ -121,6 +126,7 @@ impl FrameBuffer {
             self.sums[dst..dst + n].copy_from_slice(&result.sums[src..src + n]);
             self.counts[dst..dst + n].copy_from_slice(&result.counts[src..src + n]);
             self.albedo_sums[dst..dst + n].copy_from_slice(&result.albedo_sums[src..src + n]);
+            self.emission_sums[dst..dst + n].copy_from_slice(&result.emission_sums[src..src + n]);
             self.surfaces[dst..dst + n].copy_from_slice(&result.surfaces[src..src + n]);
         }
         self.rejected += result.rejected;
@@ -130,6 +136,11 @@ impl FrameBuffer {
     /// Mean albedo per pixel (zero where no sample was accepted).
     pub fn mean_albedo(&self) -> Vec<Vec3> {
         self.per_sample(&self.albedo_sums)
+    }
+
+    /// Mean emitted radiance per pixel (zero where no sample was accepted).
+    pub fn mean_emission(&self) -> Vec<Vec3> {
+        self.per_sample(&self.emission_sums)
     }
 
     /// Mean radiance per pixel (zero where no sample was accepted).

@@ -134,6 +134,8 @@ pub struct ShadedSample {
     pub radiance: Vec3A,
     /// Reflectance the light was multiplied by (1 for the environment seen directly).
     pub albedo: Vec3A,
+    /// The part of `radiance` the surface emits itself (not modulated by `albedo`).
+    pub emission: Vec3A,
     /// The surface hit, or [`SurfaceGuide::NONE`].
     pub surface: SurfaceGuide,
 }
@@ -515,19 +517,25 @@ impl<'a> RenderScene<'a> {
             return ShadedSample {
                 radiance: self.lights.environment(ray.direction),
                 albedo: Vec3A::ONE,
+                emission: Vec3A::ZERO,
                 surface: SurfaceGuide::NONE,
             };
         };
         let surface = self.surface(&hit, ray.direction);
         let shader = self.shaders.get(surface.shader);
-        let albedo = Vec3A::from(match (opaque_hole, curve) {
-            (true, Some(curve)) => shader.mean_opaque_color() * curve.weight,
-            _ => shader.albedo(surface.uv),
-        });
+        let (albedo, emission) = match (opaque_hole, curve) {
+            // A hole made opaque stands for the leaf around it, dimmed the same way.
+            (true, Some(curve)) => (
+                shader.mean_opaque_color() * curve.weight,
+                shader.emission(surface.uv) * curve.weight,
+            ),
+            _ => (shader.albedo(surface.uv), shader.emission(surface.uv)),
+        };
+        let (albedo, emission) = (Vec3A::from(albedo), Vec3A::from(emission));
         // Shadow rays get the allowance at their shading point's distance from the camera.
         let allowance = curve.map(|c| c.allowance(hit.t));
         let (ng, ns) = (surface.geometric_normal, surface.shading_normal);
-        let mut radiance = Vec3A::ZERO;
+        let mut radiance = emission;
         for light in &self.lights.directional {
             if let Some(cos) = self.lit_cosine(&surface, light.direction, allowance, stats) {
                 radiance +=
@@ -572,6 +580,7 @@ impl<'a> RenderScene<'a> {
         ShadedSample {
             radiance,
             albedo,
+            emission,
             surface: SurfaceGuide {
                 depth: hit.t * ray.direction.length(),
                 position: surface.point.point.into(),
@@ -596,6 +605,7 @@ pub fn render_tile(
         sums: Vec::with_capacity(tile.pixel_count()),
         counts: Vec::with_capacity(tile.pixel_count()),
         albedo_sums: Vec::with_capacity(tile.pixel_count()),
+        emission_sums: Vec::with_capacity(tile.pixel_count()),
         surfaces: Vec::with_capacity(tile.pixel_count()),
         rejected: 0,
         stats: TraversalStats::default(),
@@ -608,7 +618,7 @@ pub fn render_tile(
     for y in tile.y..tile.y + tile.height {
         for x in tile.x..tile.x + tile.width {
             let (mut sum, mut count) = (Vec3::ZERO, 0u32);
-            let mut albedo_sum = Vec3::ZERO;
+            let (mut albedo_sum, mut emission_sum) = (Vec3::ZERO, Vec3::ZERO);
             let mut surface = SurfaceGuide::NONE;
             for sample in 0..spp {
                 let key = SampleKey::new(params.seed, x, y, frame, sample);
@@ -626,6 +636,7 @@ pub fn render_tile(
                     }
                     sum += radiance;
                     albedo_sum += Vec3::from(shaded.albedo);
+                    emission_sum += Vec3::from(shaded.emission);
                     count += 1;
                 } else {
                     result.rejected += 1;
@@ -634,6 +645,7 @@ pub fn render_tile(
             result.sums.push(sum);
             result.counts.push(count);
             result.albedo_sums.push(albedo_sum);
+            result.emission_sums.push(emission_sum);
             result.surfaces.push(surface);
         }
     }

@@ -372,8 +372,34 @@ impl WrapMode {
     }
 }
 
+/// Light a surface gives off by itself (glTF's emissive properties): seen by camera
+/// rays, not sampled as a light, so it brightens what it is and not its surroundings.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Emission {
+    /// Linear RGB radiance: the emissive factor times the emissive strength.
+    pub radiance: Vec3,
+    /// Colour texture multiplied with it (sRGB texels; alpha ignored).
+    pub texture: Option<Arc<Texture>>,
+    /// Applied to UVs before the texture is sampled.
+    pub uv_transform: Option<UvTransform>,
+}
+
+impl Emission {
+    /// Emitted radiance at `uv`.
+    #[inline]
+    pub fn at(&self, uv: Vec2) -> Vec3 {
+        match &self.texture {
+            Some(t) => {
+                let uv = self.uv_transform.as_ref().map_or(uv, |x| x.apply(uv));
+                self.radiance * t.sample(uv).truncate()
+            }
+            None => self.radiance,
+        }
+    }
+}
+
 /// A Lambertian surface: base colour times an optional texture, optionally cut out by
-/// the texture's alpha.
+/// the texture's alpha, optionally emitting light of its own.
 #[derive(Component, Clone, Debug, PartialEq)]
 pub struct Shader {
     /// The id meshes use for this shader.
@@ -390,6 +416,8 @@ pub struct Shader {
     /// its back (glTF's single-sided materials; the front is where the winding normal,
     /// transformed by the instance, points).
     pub double_sided: bool,
+    /// Light the surface emits, if any.
+    pub emission: Option<Emission>,
 }
 
 impl Shader {
@@ -402,6 +430,7 @@ impl Shader {
             uv_transform: None,
             alpha_cutoff: None,
             double_sided: true,
+            emission: None,
         }
     }
 
@@ -414,6 +443,7 @@ impl Shader {
             uv_transform: None,
             alpha_cutoff: None,
             double_sided: true,
+            emission: None,
         }
     }
 
@@ -457,6 +487,12 @@ impl Shader {
             Some(t) => self.base_color * t.sample(self.texture_uv(uv)).truncate(),
             None => self.base_color,
         }
+    }
+
+    /// Emitted radiance at `uv` (zero for surfaces that emit nothing).
+    #[inline]
+    pub fn emission(&self, uv: Vec2) -> Vec3 {
+        self.emission.as_ref().map_or(Vec3::ZERO, |e| e.at(uv))
     }
 
     /// The mean colour of the opaque part (base colour × the texture's alpha-weighted

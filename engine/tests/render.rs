@@ -325,6 +325,7 @@ fn the_discontinuity_filter_keeps_light_on_its_side_of_a_depth_edge() {
             height: 48,
             radiance: &raw,
             albedo: &albedo,
+            emission: &frame.mean_emission(),
             surfaces: &frame.surfaces,
         })
     };

@@ -5,7 +5,9 @@
 //! Materials: base colour factor × base colour texture (sRGB, the sampler's wrap modes,
 //! `KHR_texture_transform`); `alphaMode` OPAQUE ignores alpha, MASK cuts holes below
 //! `alphaCutoff` (default 0.5), and BLEND is treated as MASK at 0.5 (a ray tracer without
-//! sorting has no blending; documented and tested). `doubleSided: false` surfaces are
+//! sorting has no blending; documented and tested). Emission: `emissiveFactor` ×
+//! `KHR_materials_emissive_strength` × `emissiveTexture`, seen by camera rays (not a
+//! light source). `doubleSided: false` surfaces are
 //! invisible from behind, where the front follows glTF's rule (winding, flipped by a
 //! negative determinant). Primitives without normals get flat normals.
 //!
@@ -28,7 +30,7 @@ use sylva_engine::geometry::{Geometry, GeometryLibrary};
 use sylva_engine::light::{DirectionalLight, SkyLight};
 use sylva_engine::math::Aabb;
 use sylva_engine::mesh::TriangleMesh;
-use sylva_engine::shading::{Shader, ShaderId, Texture, UvTransform, WrapMode};
+use sylva_engine::shading::{Emission, Shader, ShaderId, Texture, UvTransform, WrapMode};
 
 /// Largest texture edge accepted (checked before decoding).
 pub const MAX_TEXTURE_EDGE: u32 = 16_384;
@@ -92,6 +94,9 @@ pub struct ImportReport {
     pub skipped_primitives: usize,
     /// Orthographic cameras (not supported; left out).
     pub orthographic_cameras: usize,
+    /// Emissive textures on another UV set than their material's base colour texture
+    /// (left out: the emissive factor still applies).
+    pub emissive_textures_left_out: usize,
 }
 
 /// An imported file as plain data.
@@ -200,7 +205,7 @@ pub fn import_slice(bytes: &[u8], path: &Path) -> Result<GltfScene, GltfError> {
         buffers,
     };
     let mut report = ImportReport::default();
-    let shaders = materials(&importer, base)?;
+    let shaders = materials(&importer, base, &mut report)?;
     let default_slot = shaders.len() as u32 - 1;
     let meshes = importer
         .document
@@ -214,6 +219,14 @@ pub fn import_slice(bytes: &[u8], path: &Path) -> Result<GltfScene, GltfError> {
             path.display(),
             report.non_finite_vertices,
             report.dropped_triangles
+        );
+    }
+    if report.emissive_textures_left_out > 0 {
+        tracing::warn!(
+            "{}: left out {} emissive textures on another UV set than their base colour \
+             texture (their emissive factors still apply)",
+            path.display(),
+            report.emissive_textures_left_out
         );
     }
     if report.singular_instances > 0 {
@@ -241,8 +254,58 @@ fn wrap_mode(mode: gltf::texture::WrappingMode) -> WrapMode {
     }
 }
 
+/// The texture coordinate set a texture reference reads (its transform may override it).
+fn texture_set(info: &gltf::texture::Info) -> u32 {
+    info.texture_transform()
+        .and_then(|t| t.tex_coord())
+        .unwrap_or(info.tex_coord())
+}
+
+/// The UV set a material's meshes keep: its base colour texture's, else its emissive
+/// texture's, else 0. Sylva keeps one set per mesh.
+fn material_uv_set(material: &gltf::Material) -> u32 {
+    let base = material.pbr_metallic_roughness().base_color_texture();
+    base.or_else(|| material.emissive_texture())
+        .map_or(0, |info| texture_set(&info))
+}
+
+/// A texture reference decoded once per image, with its sampler's wrap modes and its
+/// `KHR_texture_transform`.
+fn texture_of(
+    importer: &Importer,
+    base: &Path,
+    textures: &mut [Option<Arc<Texture>>],
+    info: &gltf::texture::Info,
+    role: &str,
+) -> Result<(Arc<Texture>, Option<UvTransform>), GltfError> {
+    let texture = info.texture();
+    let image = texture.source();
+    let decoded = match &textures[image.index()] {
+        Some(t) => t.clone(),
+        None => {
+            let t = Arc::new(decode_image(importer, &image, base, role)?);
+            textures[image.index()] = Some(t.clone());
+            t
+        }
+    };
+    let sampler = texture.sampler();
+    let wrapped = (*decoded)
+        .clone()
+        .with_wrap(wrap_mode(sampler.wrap_s()), wrap_mode(sampler.wrap_t()));
+    let transform = info.texture_transform().map(|t| UvTransform {
+        offset: Vec2::from(t.offset()),
+        rotation: t.rotation(),
+        scale: Vec2::from(t.scale()),
+    });
+    Ok((Arc::new(wrapped), transform))
+}
+
 /// Shaders for every material plus glTF's default material (white, opaque, single-sided).
-fn materials(importer: &Importer, base: &Path) -> Result<Vec<Shader>, GltfError> {
+fn materials(
+    importer: &Importer,
+    base: &Path,
+    report: &mut ImportReport,
+) -> Result<Vec<Shader>, GltfError> {
     let mut shaders = Vec::new();
     let mut textures: Vec<Option<Arc<Texture>>> = vec![None; importer.document.images().len()];
     let materials: Vec<_> = importer.document.materials().collect();
@@ -253,30 +316,13 @@ fn materials(importer: &Importer, base: &Path) -> Result<Vec<Shader>, GltfError>
         let [r, g, b, a] = pbr.base_color_factor();
         let mut shader = Shader::color(ShaderId(index as u32), Vec3::new(r, g, b));
         shader.double_sided = material.double_sided();
-        let info = pbr.base_color_texture();
-        if let Some(info) = &info {
-            let texture = info.texture();
-            let image = texture.source();
+        if let Some(info) = &pbr.base_color_texture() {
             let role = format!("baseColorTexture of material '{name}' (materials[{index}])");
-            let decoded = match &textures[image.index()] {
-                Some(t) => t.clone(),
-                None => {
-                    let t = Arc::new(decode_image(importer, &image, base, &role)?);
-                    textures[image.index()] = Some(t.clone());
-                    t
-                }
-            };
-            let sampler = texture.sampler();
-            let wrapped = (*decoded)
-                .clone()
-                .with_wrap(wrap_mode(sampler.wrap_s()), wrap_mode(sampler.wrap_t()));
-            shader.texture = Some(Arc::new(wrapped));
-            shader.uv_transform = info.texture_transform().map(|t| UvTransform {
-                offset: Vec2::from(t.offset()),
-                rotation: t.rotation(),
-                scale: Vec2::from(t.scale()),
-            });
+            let (texture, transform) = texture_of(importer, base, &mut textures, info, &role)?;
+            shader.texture = Some(texture);
+            shader.uv_transform = transform;
         }
+        shader.emission = emission(importer, base, &mut textures, &material, report)?;
         let cutoff = match material.alpha_mode() {
             gltf::material::AlphaMode::Opaque => None,
             gltf::material::AlphaMode::Mask => Some(material.alpha_cutoff().unwrap_or(0.5)),
@@ -296,6 +342,56 @@ fn materials(importer: &Importer, base: &Path) -> Result<Vec<Shader>, GltfError>
     default.double_sided = false;
     shaders.push(default);
     Ok(shaders)
+}
+
+/// The material's emissive factor × `KHR_materials_emissive_strength` × emissive
+/// texture, or `None` when it emits nothing. A negative or non-finite factor or strength
+/// is an error naming the material; an emissive texture on another UV set than the base
+/// colour's is left out (Sylva keeps one set per mesh) and counted.
+fn emission(
+    importer: &Importer,
+    base: &Path,
+    textures: &mut [Option<Arc<Texture>>],
+    material: &gltf::Material,
+    report: &mut ImportReport,
+) -> Result<Option<Emission>, GltfError> {
+    let index = material.index().unwrap_or(0);
+    let at = format!("materials[{index}]");
+    let factor = Vec3::from(material.emissive_factor());
+    if !factor.is_finite() || factor.min_element() < 0.0 {
+        return Err(importer.error(
+            format!("{at}.emissiveFactor"),
+            format!("must be finite and non-negative, not {factor}"),
+        ));
+    }
+    let strength = material.emissive_strength().unwrap_or(1.0);
+    if !strength.is_finite() || strength < 0.0 {
+        return Err(importer.error(
+            format!("{at}.extensions.KHR_materials_emissive_strength.emissiveStrength"),
+            format!("must be finite and non-negative, not {strength}"),
+        ));
+    }
+    let radiance = factor * strength;
+    if radiance == Vec3::ZERO {
+        return Ok(None);
+    }
+    let mut emission = Emission {
+        radiance,
+        texture: None,
+        uv_transform: None,
+    };
+    if let Some(info) = &material.emissive_texture() {
+        if texture_set(info) == material_uv_set(material) {
+            let name = material.name().unwrap_or("");
+            let role = format!("emissiveTexture of material '{name}' ({at})");
+            let (texture, transform) = texture_of(importer, base, textures, info, &role)?;
+            emission.texture = Some(texture);
+            emission.uv_transform = transform;
+        } else {
+            report.emissive_textures_left_out += 1;
+        }
+    }
+    Ok(Some(emission))
 }
 
 /// Minimal base64 (RFC 4648) for `data:` image URIs.
@@ -527,14 +623,7 @@ fn mesh(
             None => None,
         };
         let material = primitive.material();
-        let set = material
-            .pbr_metallic_roughness()
-            .base_color_texture()
-            .map_or(0, |i| {
-                i.texture_transform()
-                    .and_then(|t| t.tex_coord())
-                    .unwrap_or(i.tex_coord())
-            });
+        let set = material_uv_set(&material);
         // gltf's reader assumes the layouts the specification allows and misreads (or,
         // with debug assertions, panics on) others: check them first (fuzz finding).
         use gltf::accessor::{DataType, Dimensions};

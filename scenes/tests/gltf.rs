@@ -597,3 +597,138 @@ fn fuzz_regressions_import_cleanly_or_fail_with_an_error() {
     }
     assert!(checked >= 1);
 }
+
+/// Five unit quads facing +z in a row (quad `i` at x = 2i, material `i`), with UVs whose
+/// origin is the image's top left; `materials` is the JSON array of the five materials,
+/// `extra` adds top-level members (textures, images, samplers).
+fn quads_gltf(materials: &str, extra: &str) -> String {
+    let positions: [f32; 12] = [0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 1.0, 1.0, 0.0, 0.0, 1.0, 0.0];
+    let uvs: [f32; 8] = [0.0, 1.0, 1.0, 1.0, 1.0, 0.0, 0.0, 0.0];
+    let indices: [u16; 6] = [0, 1, 2, 0, 2, 3];
+    let mut bytes: Vec<u8> = positions.iter().flat_map(|f| f.to_le_bytes()).collect();
+    bytes.extend(uvs.iter().flat_map(|f| f.to_le_bytes()));
+    bytes.extend(indices.iter().flat_map(|i| i.to_le_bytes()));
+    let nodes: Vec<String> = (0..5)
+        .map(|i| format!(r#"{{"mesh":{i},"translation":[{},0,0]}}"#, 2 * i))
+        .collect();
+    let meshes: Vec<String> = (0..5)
+        .map(|i| {
+            format!(
+                r#"{{"primitives":[{{"attributes":{{"POSITION":0,"TEXCOORD_0":1}},"indices":2,"material":{i}}}]}}"#
+            )
+        })
+        .collect();
+    format!(
+        r#"{{"asset":{{"version":"2.0"}},"scene":0,"scenes":[{{"nodes":[0,1,2,3,4]}}],
+"nodes":[{}],"meshes":[{}],"materials":{materials},
+"extensionsUsed":["KHR_materials_emissive_strength"],
+"buffers":[{{"byteLength":{},"uri":"data:application/octet-stream;base64,{}"}}],
+"bufferViews":[{{"buffer":0,"byteOffset":0,"byteLength":48}},{{"buffer":0,"byteOffset":48,"byteLength":32}},{{"buffer":0,"byteOffset":80,"byteLength":12}}],
+"accessors":[{{"bufferView":0,"componentType":5126,"count":4,"type":"VEC3","min":[0,0,0],"max":[1,1,0]}},
+{{"bufferView":1,"componentType":5126,"count":4,"type":"VEC2"}},
+{{"bufferView":2,"componentType":5123,"count":6,"type":"SCALAR"}}]{extra}}}"#,
+        nodes.join(","),
+        meshes.join(","),
+        bytes.len(),
+        base64(&bytes)
+    )
+}
+
+/// What a camera ray straight at the point (x, y) of the quads' plane sees, with no
+/// light in the scene but what surfaces emit.
+fn shade_at(q: &Queryable, x: f32, y: f32) -> sylva_engine::render::ShadedSample {
+    let ray = Ray::new(Vec3A::new(x, y, 5.0), Vec3A::NEG_Z);
+    q.kernel().shade(
+        &ray,
+        &sylva_engine::sampling::SampleKey::new(0, 0, 0, 0, 0),
+        &sylva_engine::render::SampleShading::plain(1),
+        &mut TraversalStats::default(),
+    )
+}
+
+#[test]
+fn emissive_strength_test_quads_grow_brighter_to_the_right() {
+    // The Khronos EmissiveStrengthTest's property (its files are not in this
+    // repository): emissive colour [0.1, 0.5, 0.9] on all, KHR_materials_emissive_strength
+    // absent on the first and 2, 4, 8, 16 on the others; black base colour.
+    let strengths = [None, Some(2.0), Some(4.0), Some(8.0), Some(16.0)];
+    let materials: Vec<String> = strengths
+        .iter()
+        .map(|s| {
+            let extension = s.map_or(String::new(), |s: f32| {
+                format!(r#","extensions":{{"KHR_materials_emissive_strength":{{"emissiveStrength":{s}}}}}"#)
+            });
+            format!(
+                r#"{{"pbrMetallicRoughness":{{"baseColorFactor":[0,0,0,1]}},"emissiveFactor":[0.1,0.5,0.9]{extension}}}"#
+            )
+        })
+        .collect();
+    let text = quads_gltf(&format!("[{}]", materials.join(",")), "");
+    let dir = scratch("emissive-strength", &[("e.gltf", text.as_bytes())]);
+    let q = Queryable::new(import(&dir.join("e.gltf")).unwrap());
+    for (i, strength) in strengths.iter().enumerate() {
+        let shaded = shade_at(&q, 2.0 * i as f32 + 0.5, 0.5);
+        let expected = Vec3A::new(0.1, 0.5, 0.9) * strength.unwrap_or(1.0);
+        assert!(
+            (shaded.radiance - expected).abs().max_element() < 1e-6 * expected.max_element(),
+            "quad {i}: {} against {expected}",
+            shaded.radiance
+        );
+        assert_eq!(
+            shaded.emission, shaded.radiance,
+            "quad {i}: all of it emitted"
+        );
+    }
+    // Between the quads the ray meets nothing: no emission, no light.
+    assert_eq!(shade_at(&q, 1.5, 0.5).radiance, Vec3A::ZERO);
+}
+
+#[test]
+fn emissive_textures_are_srgb_and_follow_the_uv_origin_and_bad_factors_are_errors() {
+    // A 4×1 emissive texture, red on the left half and sRGB mid-grey on the right, on
+    // quad 0 (sampled at texel centres); quad 1 emits nothing (no emissive factor)
+    // although it names the texture.
+    let (red, grey) = ([255, 0, 0, 255], [128, 128, 128, 255]);
+    let mut png = Vec::new();
+    image::RgbaImage::from_raw(4, 1, [red, red, grey, grey].concat())
+        .unwrap()
+        .write_to(&mut std::io::Cursor::new(&mut png), image::ImageFormat::Png)
+        .unwrap();
+    let textured = r#"{"emissiveFactor":[1,1,1],"emissiveTexture":{"index":0}}"#;
+    let unlit = r#"{"emissiveTexture":{"index":0}}"#;
+    let plain = r#"{}"#;
+    let materials = format!("[{textured},{unlit},{plain},{plain},{plain}]");
+    let extra = format!(
+        r#","textures":[{{"source":0,"sampler":0}}],"samplers":[{{"wrapS":33071,"wrapT":33071}}],"images":[{{"uri":"data:image/png;base64,{}"}}]"#,
+        base64(&png)
+    );
+    let text = quads_gltf(&materials, &extra);
+    let dir = scratch("emissive-texture", &[("t.gltf", text.as_bytes())]);
+    let q = Queryable::new(import(&dir.join("t.gltf")).unwrap());
+    let grey = sylva_engine::shading::srgb_to_linear(128.0 / 255.0);
+    for (x, expected) in [(0.125, Vec3A::X), (0.875, Vec3A::splat(grey))] {
+        let e = shade_at(&q, x, 0.5).emission;
+        assert!(
+            (e - expected).abs().max_element() < 1e-4,
+            "x = {x}: {e} against {expected}"
+        );
+    }
+    assert_eq!(shade_at(&q, 2.5, 0.5).emission, Vec3A::ZERO);
+    assert!(q.scene.shaders[1].emission.is_none());
+
+    for (bad, place) in [
+        (
+            r#"{"emissiveFactor":[1,-1,0]}"#,
+            "materials[0].emissiveFactor",
+        ),
+        (
+            r#"{"emissiveFactor":[1,1,1],"extensions":{"KHR_materials_emissive_strength":{"emissiveStrength":-2}}}"#,
+            "emissiveStrength",
+        ),
+    ] {
+        let text = quads_gltf(&format!("[{bad},{plain},{plain},{plain},{plain}]"), "");
+        let dir = scratch("emissive-bad", &[("b.gltf", text.as_bytes())]);
+        let error = import(&dir.join("b.gltf")).unwrap_err().to_string();
+        assert!(error.contains("b.gltf") && error.contains(place), "{error}");
+    }
+}

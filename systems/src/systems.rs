@@ -445,6 +445,7 @@ pub fn filter_display(
                     height: film.height(),
                     radiance: &means,
                     albedo: &frame.mean_albedo(),
+                    emission: &frame.mean_emission(),
                     surfaces: &frame.surfaces,
                 },
             )
