@@ -195,6 +195,20 @@ pub struct SurfacePoint {
     pub shader: u32,
 }
 
+/// The side of a surface light arrives from: the viewer's, or (through a translucent
+/// surface) the other.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+enum Side {
+    Front,
+    Back,
+}
+
+/// Rec. 709 luminance.
+#[inline]
+fn luminance(c: Vec3A) -> f32 {
+    0.2126 * c.x + 0.7152 * c.y + 0.0722 * c.z
+}
+
 /// First random dimension used by sky sampling (0–1 pixel jitter, 2–3 lens).
 const SKY_DIMENSION: u32 = 4;
 
@@ -468,24 +482,30 @@ impl<'a> RenderScene<'a> {
         }
     }
 
-    /// The shading cosine toward a directional light at `direction`, when the light is
-    /// above both normals and its shadow ray (which may pass `allowance` holes) is
-    /// unoccluded.
+    /// The shading cosine toward a directional light at `direction` and the side it
+    /// lights, when its shadow ray (which may pass `allowance` holes) is unoccluded: the
+    /// front (the light above both normals), or, for a `translucent` surface, the back
+    /// (below both; the shadow ray then starts on the far side).
     #[inline]
     fn lit_cosine(
         &self,
         surface: &SurfacePoint,
         direction: Vec3,
+        translucent: bool,
         allowance: Option<u32>,
         stats: &mut TraversalStats,
-    ) -> Option<f32> {
+    ) -> Option<(f32, Side)> {
         let (ng, l) = (surface.geometric_normal, Vec3A::from(direction));
         let cos = surface.shading_normal.dot(l);
-        if cos <= 0.0 || ng.dot(l) <= 0.0 {
+        let (cos, side, outward) = if cos > 0.0 && ng.dot(l) > 0.0 {
+            (cos, Side::Front, ng)
+        } else if translucent && cos < 0.0 && ng.dot(l) < 0.0 {
+            (-cos, Side::Back, -ng)
+        } else {
             return None;
-        }
-        let shadow = Ray::new(surface.point.offset_origin(ng, l), l);
-        (!self.occluded_within(&shadow, allowance, stats)).then_some(cos)
+        };
+        let shadow = Ray::new(surface.point.offset_origin(outward, l), l);
+        (!self.occluded_within(&shadow, allowance, stats)).then_some((cos, side))
     }
 
     /// Radiance arriving along `ray`: direct sun and sky (or environment: light samples
@@ -523,23 +543,40 @@ impl<'a> RenderScene<'a> {
         };
         let surface = self.surface(&hit, ray.direction);
         let shader = self.shaders.get(surface.shader);
-        let (albedo, emission) = match (opaque_hole, curve) {
+        let (albedo, transmittance, emission) = match (opaque_hole, curve) {
             // A hole made opaque stands for the leaf around it, dimmed the same way.
             (true, Some(curve)) => (
-                shader.mean_opaque_color() * curve.weight,
+                shader.mean_opaque_color() * (shader.reflected_share() * curve.weight),
+                shader.transmittance(surface.uv) * curve.weight,
                 shader.emission(surface.uv) * curve.weight,
             ),
-            _ => (shader.albedo(surface.uv), shader.emission(surface.uv)),
+            _ => (
+                shader.reflectance(surface.uv),
+                shader.transmittance(surface.uv),
+                shader.emission(surface.uv),
+            ),
         };
-        let (albedo, emission) = (Vec3A::from(albedo), Vec3A::from(emission));
+        let (albedo, transmittance, emission) = (
+            Vec3A::from(albedo),
+            Vec3A::from(transmittance),
+            Vec3A::from(emission),
+        );
+        let translucent = transmittance != Vec3A::ZERO;
+        let side_factor = |side: Side| match side {
+            Side::Front => albedo,
+            Side::Back => transmittance,
+        };
         // Shadow rays get the allowance at their shading point's distance from the camera.
         let allowance = curve.map(|c| c.allowance(hit.t));
         let (ng, ns) = (surface.geometric_normal, surface.shading_normal);
         let mut radiance = emission;
         for light in &self.lights.directional {
-            if let Some(cos) = self.lit_cosine(&surface, light.direction, allowance, stats) {
-                radiance +=
-                    albedo * Vec3A::from(light.irradiance) * (cos * std::f32::consts::FRAC_1_PI);
+            if let Some((cos, side)) =
+                self.lit_cosine(&surface, light.direction, translucent, allowance, stats)
+            {
+                radiance += side_factor(side)
+                    * Vec3A::from(light.irradiance)
+                    * (cos * std::f32::consts::FRAC_1_PI);
             }
         }
         let samples = shading.light_samples;
@@ -556,24 +593,51 @@ impl<'a> RenderScene<'a> {
                 let Some(light) = environment.lights.sample(u) else {
                     continue;
                 };
-                if let Some(cos) = self.lit_cosine(&surface, light.direction, allowance, stats) {
+                if let Some((cos, side)) =
+                    self.lit_cosine(&surface, light.direction, translucent, allowance, stats)
+                {
                     let weight =
                         cos * std::f32::consts::FRAC_1_PI / (light.probability * samples as f32);
-                    radiance += albedo * Vec3A::from(light.irradiance) * weight;
+                    radiance += side_factor(side) * Vec3A::from(light.irradiance) * weight;
                 }
             }
         } else if let Some(sky) = &self.lights.sky {
             let (t, b) = orthonormal_basis(ns);
+            // A translucent surface picks the side of each sample in proportion to what
+            // that side passes on; the first random number, rescaled, still places the
+            // direction (an opaque one keeps it as it is: the front every time).
+            let front_share = if translucent {
+                let (r, t) = (luminance(albedo), luminance(transmittance));
+                if r + t > 0.0 { r / (r + t) } else { 0.5 }
+            } else {
+                1.0
+            };
             for k in 0..samples {
-                let local = cosine_hemisphere(key.get2(SKY_DIMENSION + 2 * k));
-                let d = t * local.x + b * local.y + ns * local.z;
-                if ng.dot(d) <= 0.0 {
+                let [u0, u1] = key.get2(SKY_DIMENSION + 2 * k).to_array();
+                let (side, u0, share) = if u0 < front_share {
+                    (Side::Front, u0 / front_share, front_share)
+                } else {
+                    let back_share = 1.0 - front_share;
+                    (
+                        Side::Back,
+                        ((u0 - front_share) / back_share).min(1.0),
+                        back_share,
+                    )
+                };
+                let local = cosine_hemisphere(Vec2::new(u0, u1));
+                let (outward, normal) = match side {
+                    Side::Front => (ng, ns),
+                    Side::Back => (-ng, -ns),
+                };
+                let d = t * local.x + b * local.y + normal * local.z;
+                if outward.dot(d) <= 0.0 {
                     continue;
                 }
-                let shadow = Ray::new(surface.point.offset_origin(ng, d), d);
+                let shadow = Ray::new(surface.point.offset_origin(outward, d), d);
                 if !self.occluded_within(&shadow, allowance, stats) {
-                    // Cosine sampling cancels the cos/π of the Lambertian BRDF.
-                    radiance += albedo * sky.radiance(d) / samples as f32;
+                    // Cosine sampling cancels the cos/π of the Lambertian BRDF; the side's
+                    // share is its probability.
+                    radiance += side_factor(side) * sky.radiance(d) / (share * samples as f32);
                 }
             }
         }

@@ -398,8 +398,62 @@ impl Emission {
     }
 }
 
+/// Diffuse transmission of a thin surface (a leaf): a share of the light arriving from
+/// behind passes through, tinted, and leaves diffusely on the other side (glTF's
+/// `KHR_materials_diffuse_transmission`). Reflectance becomes `(1 − factor) × albedo`
+/// and transmittance `factor × color × texture`, so their sum stays at most 1 when
+/// colours do.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Transmission {
+    /// Share of the diffuse light transmitted instead of reflected (0 ..= 1).
+    pub factor: f32,
+    /// Tint of the transmitted light (linear RGB, each channel 0 ..= 1).
+    pub color: Vec3,
+    /// Colour texture multiplied with `color` (sRGB texels; alpha ignored).
+    pub color_texture: Option<Arc<Texture>>,
+    /// Applied to UVs before the texture is sampled.
+    pub uv_transform: Option<UvTransform>,
+}
+
+impl Transmission {
+    /// Transmission of `factor` tinted by `color`, untextured.
+    pub fn new(factor: f32, color: Vec3) -> Self {
+        Self {
+            factor,
+            color,
+            color_texture: None,
+            uv_transform: None,
+        }
+    }
+
+    /// The same with `factor` and `color` clamped to 0 ..= 1 (NaN to 0), so that
+    /// reflectance plus transmittance never exceeds 1; the flag says whether anything
+    /// changed (callers warn, naming the material).
+    pub fn clamped(mut self) -> (Self, bool) {
+        let unit = |v: f32| if v.is_nan() { 0.0 } else { v.clamp(0.0, 1.0) };
+        let (factor, color) = (unit(self.factor), self.color.to_array().map(unit).into());
+        let changed = factor.to_bits() != self.factor.to_bits() || color != self.color;
+        self.factor = factor;
+        self.color = color;
+        (self, changed)
+    }
+
+    /// Transmittance at `uv`.
+    #[inline]
+    pub fn at(&self, uv: Vec2) -> Vec3 {
+        let tint = match &self.color_texture {
+            Some(t) => {
+                let uv = self.uv_transform.as_ref().map_or(uv, |x| x.apply(uv));
+                self.color * t.sample(uv).truncate()
+            }
+            None => self.color,
+        };
+        tint * self.factor
+    }
+}
+
 /// A Lambertian surface: base colour times an optional texture, optionally cut out by
-/// the texture's alpha, optionally emitting light of its own.
+/// the texture's alpha, optionally emitting light of its own or transmitting it.
 #[derive(Component, Clone, Debug, PartialEq)]
 pub struct Shader {
     /// The id meshes use for this shader.
@@ -418,6 +472,8 @@ pub struct Shader {
     pub double_sided: bool,
     /// Light the surface emits, if any.
     pub emission: Option<Emission>,
+    /// Light the surface lets through from behind, if any.
+    pub transmission: Option<Transmission>,
 }
 
 impl Shader {
@@ -431,6 +487,7 @@ impl Shader {
             alpha_cutoff: None,
             double_sided: true,
             emission: None,
+            transmission: None,
         }
     }
 
@@ -444,6 +501,7 @@ impl Shader {
             alpha_cutoff: None,
             double_sided: true,
             emission: None,
+            transmission: None,
         }
     }
 
@@ -487,6 +545,24 @@ impl Shader {
             Some(t) => self.base_color * t.sample(self.texture_uv(uv)).truncate(),
             None => self.base_color,
         }
+    }
+
+    /// Diffuse reflectance at `uv`: the albedo less the share transmitted.
+    #[inline]
+    pub fn reflectance(&self, uv: Vec2) -> Vec3 {
+        self.reflected_share() * self.albedo(uv)
+    }
+
+    /// The share of diffuse light reflected rather than transmitted.
+    #[inline]
+    pub fn reflected_share(&self) -> f32 {
+        self.transmission.as_ref().map_or(1.0, |t| 1.0 - t.factor)
+    }
+
+    /// Diffuse transmittance at `uv` (zero for opaque surfaces).
+    #[inline]
+    pub fn transmittance(&self, uv: Vec2) -> Vec3 {
+        self.transmission.as_ref().map_or(Vec3::ZERO, |t| t.at(uv))
     }
 
     /// Emitted radiance at `uv` (zero for surfaces that emit nothing).
