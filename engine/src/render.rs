@@ -546,7 +546,7 @@ impl<'a> RenderScene<'a> {
         let (albedo, transmittance, emission) = match (opaque_hole, curve) {
             // A hole made opaque stands for the leaf around it, dimmed the same way.
             (true, Some(curve)) => (
-                shader.mean_opaque_color() * (shader.reflected_share() * curve.weight),
+                shader.mean_opaque_color() * (shader.reflected_share(surface.uv) * curve.weight),
                 shader.transmittance(surface.uv) * curve.weight,
                 shader.emission(surface.uv) * curve.weight,
             ),

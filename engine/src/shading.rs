@@ -411,8 +411,12 @@ pub struct Transmission {
     pub color: Vec3,
     /// Colour texture multiplied with `color` (sRGB texels; alpha ignored).
     pub color_texture: Option<Arc<Texture>>,
-    /// Applied to UVs before the texture is sampled.
+    /// Applied to UVs before the colour texture is sampled.
     pub uv_transform: Option<UvTransform>,
+    /// Texture whose alpha multiplies `factor`.
+    pub factor_texture: Option<Arc<Texture>>,
+    /// Applied to UVs before the factor texture is sampled.
+    pub factor_uv_transform: Option<UvTransform>,
 }
 
 impl Transmission {
@@ -423,6 +427,23 @@ impl Transmission {
             color,
             color_texture: None,
             uv_transform: None,
+            factor_texture: None,
+            factor_uv_transform: None,
+        }
+    }
+
+    /// The transmitted share at `uv`.
+    #[inline]
+    pub fn factor_at(&self, uv: Vec2) -> f32 {
+        match &self.factor_texture {
+            Some(t) => {
+                let uv = self
+                    .factor_uv_transform
+                    .as_ref()
+                    .map_or(uv, |x| x.apply(uv));
+                self.factor * t.sample(uv).w
+            }
+            None => self.factor,
         }
     }
 
@@ -448,7 +469,7 @@ impl Transmission {
             }
             None => self.color,
         };
-        tint * self.factor
+        tint * self.factor_at(uv)
     }
 }
 
@@ -550,13 +571,15 @@ impl Shader {
     /// Diffuse reflectance at `uv`: the albedo less the share transmitted.
     #[inline]
     pub fn reflectance(&self, uv: Vec2) -> Vec3 {
-        self.reflected_share() * self.albedo(uv)
+        self.reflected_share(uv) * self.albedo(uv)
     }
 
-    /// The share of diffuse light reflected rather than transmitted.
+    /// The share of diffuse light reflected rather than transmitted at `uv`.
     #[inline]
-    pub fn reflected_share(&self) -> f32 {
-        self.transmission.as_ref().map_or(1.0, |t| 1.0 - t.factor)
+    pub fn reflected_share(&self, uv: Vec2) -> f32 {
+        self.transmission
+            .as_ref()
+            .map_or(1.0, |t| 1.0 - t.factor_at(uv))
     }
 
     /// Diffuse transmittance at `uv` (zero for opaque surfaces).

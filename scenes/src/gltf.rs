@@ -7,7 +7,8 @@
 //! `alphaCutoff` (default 0.5), and BLEND is treated as MASK at 0.5 (a ray tracer without
 //! sorting has no blending; documented and tested). Emission: `emissiveFactor` ×
 //! `KHR_materials_emissive_strength` × `emissiveTexture`, seen by camera rays (not a
-//! light source). `doubleSided: false` surfaces are
+//! light source). `KHR_materials_diffuse_transmission` makes thin surfaces translucent
+//! (parsed from the raw JSON: the gltf crate does not know it). `doubleSided: false` surfaces are
 //! invisible from behind, where the front follows glTF's rule (winding, flipped by a
 //! negative determinant). Primitives without normals get flat normals.
 //!
@@ -30,7 +31,9 @@ use sylva_engine::geometry::{Geometry, GeometryLibrary};
 use sylva_engine::light::{DirectionalLight, SkyLight};
 use sylva_engine::math::Aabb;
 use sylva_engine::mesh::TriangleMesh;
-use sylva_engine::shading::{Emission, Shader, ShaderId, Texture, UvTransform, WrapMode};
+use sylva_engine::shading::{
+    Emission, Shader, ShaderId, Texture, Transmission, UvTransform, WrapMode,
+};
 
 /// Largest texture edge accepted (checked before decoding).
 pub const MAX_TEXTURE_EDGE: u32 = 16_384;
@@ -94,9 +97,10 @@ pub struct ImportReport {
     pub skipped_primitives: usize,
     /// Orthographic cameras (not supported; left out).
     pub orthographic_cameras: usize,
-    /// Emissive textures on another UV set than their material's base colour texture
-    /// (left out: the emissive factor still applies).
-    pub emissive_textures_left_out: usize,
+    /// Emissive and diffuse-transmission textures on another UV set than the one their
+    /// material's meshes keep (the base colour texture's): left out, their factors
+    /// still apply.
+    pub textures_left_out: usize,
 }
 
 /// An imported file as plain data.
@@ -221,12 +225,12 @@ pub fn import_slice(bytes: &[u8], path: &Path) -> Result<GltfScene, GltfError> {
             report.dropped_triangles
         );
     }
-    if report.emissive_textures_left_out > 0 {
+    if report.textures_left_out > 0 {
         tracing::warn!(
-            "{}: left out {} emissive textures on another UV set than their base colour \
-             texture (their emissive factors still apply)",
+            "{}: left out {} emissive or transmission textures on another UV set than \
+             their base colour texture (their factors still apply)",
             path.display(),
-            report.emissive_textures_left_out
+            report.textures_left_out
         );
     }
     if report.singular_instances > 0 {
@@ -278,7 +282,25 @@ fn texture_of(
     info: &gltf::texture::Info,
     role: &str,
 ) -> Result<(Arc<Texture>, Option<UvTransform>), GltfError> {
-    let texture = info.texture();
+    let transform = info.texture_transform().map(|t| UvTransform {
+        offset: Vec2::from(t.offset()),
+        rotation: t.rotation(),
+        scale: Vec2::from(t.scale()),
+    });
+    Ok((
+        decoded(importer, base, textures, &info.texture(), role)?,
+        transform,
+    ))
+}
+
+/// A texture's image decoded once per image, with the sampler's wrap modes.
+fn decoded(
+    importer: &Importer,
+    base: &Path,
+    textures: &mut [Option<Arc<Texture>>],
+    texture: &gltf::Texture,
+    role: &str,
+) -> Result<Arc<Texture>, GltfError> {
     let image = texture.source();
     let decoded = match &textures[image.index()] {
         Some(t) => t.clone(),
@@ -289,15 +311,136 @@ fn texture_of(
         }
     };
     let sampler = texture.sampler();
-    let wrapped = (*decoded)
-        .clone()
-        .with_wrap(wrap_mode(sampler.wrap_s()), wrap_mode(sampler.wrap_t()));
-    let transform = info.texture_transform().map(|t| UvTransform {
-        offset: Vec2::from(t.offset()),
-        rotation: t.rotation(),
-        scale: Vec2::from(t.scale()),
-    });
-    Ok((Arc::new(wrapped), transform))
+    Ok(Arc::new((*decoded).clone().with_wrap(
+        wrap_mode(sampler.wrap_s()),
+        wrap_mode(sampler.wrap_t()),
+    )))
+}
+
+/// A texture reference in an extension the gltf crate does not parse (`{"index",
+/// "texCoord", "extensions": {"KHR_texture_transform": …}}`): the texture, its UV set
+/// and its transform; malformed references are errors at `at`.
+fn raw_texture_ref<'a>(
+    importer: &'a Importer,
+    value: &gltf::json::Value,
+    at: &str,
+) -> Result<(gltf::Texture<'a>, u32, Option<UvTransform>), GltfError> {
+    let bad = |what: &str| importer.error(at.to_string(), what.to_string());
+    let index = value
+        .get("index")
+        .and_then(|i| i.as_u64())
+        .ok_or_else(|| bad("a texture reference needs an integer \"index\""))?;
+    let texture = importer
+        .document
+        .textures()
+        .nth(index as usize)
+        .ok_or_else(|| bad(&format!("texture {index} does not exist")))?;
+    let mut set = value.get("texCoord").and_then(|t| t.as_u64()).unwrap_or(0) as u32;
+    let transform = match value.pointer("/extensions/KHR_texture_transform") {
+        Some(t) => {
+            let pair = |key: &str, default: [f32; 2]| -> Vec2 {
+                t.get(key)
+                    .and_then(|v| v.as_array())
+                    .filter(|a| a.len() == 2)
+                    .map_or(Vec2::from(default), |a| {
+                        Vec2::new(
+                            a[0].as_f64().unwrap_or(default[0] as f64) as f32,
+                            a[1].as_f64().unwrap_or(default[1] as f64) as f32,
+                        )
+                    })
+            };
+            if let Some(coord) = t.get("texCoord").and_then(|c| c.as_u64()) {
+                set = coord as u32;
+            }
+            Some(UvTransform {
+                offset: pair("offset", [0.0, 0.0]),
+                rotation: t.get("rotation").and_then(|r| r.as_f64()).unwrap_or(0.0) as f32,
+                scale: pair("scale", [1.0, 1.0]),
+            })
+        }
+        None => None,
+    };
+    Ok((texture, set, transform))
+}
+
+/// `KHR_materials_diffuse_transmission` (the gltf crate does not parse it): factor ×
+/// the factor texture's alpha, colour factor × colour texture. Factors outside 0 ..= 1
+/// are clamped with a warning naming the material, so reflectance plus transmittance
+/// stays at most 1; textures on another UV set than the mesh keeps are left out and
+/// counted.
+fn transmission(
+    importer: &Importer,
+    base: &Path,
+    textures: &mut [Option<Arc<Texture>>],
+    material: &gltf::Material,
+    report: &mut ImportReport,
+) -> Result<Option<Transmission>, GltfError> {
+    const NAME: &str = "KHR_materials_diffuse_transmission";
+    let Some(value) = material.extension_value(NAME) else {
+        return Ok(None);
+    };
+    let index = material.index().unwrap_or(0);
+    let name = material.name().unwrap_or("");
+    let at = format!("materials[{index}].extensions.{NAME}");
+    let number = |key: &str, default: f64| -> Result<f32, GltfError> {
+        match value.get(key) {
+            None => Ok(default as f32),
+            Some(v) => v.as_f64().map(|x| x as f32).ok_or_else(|| {
+                importer.error(format!("{at}.{key}"), "must be a number".to_string())
+            }),
+        }
+    };
+    let factor = number("diffuseTransmissionFactor", 0.0)?;
+    let color = match value.get("diffuseTransmissionColorFactor") {
+        None => Vec3::ONE,
+        Some(v) => v
+            .as_array()
+            .filter(|a| a.len() == 3)
+            .and_then(|a| {
+                let c: Option<Vec<f32>> = a.iter().map(|x| x.as_f64().map(|x| x as f32)).collect();
+                c.map(|c| Vec3::new(c[0], c[1], c[2]))
+            })
+            .ok_or_else(|| {
+                importer.error(
+                    format!("{at}.diffuseTransmissionColorFactor"),
+                    "must be an array of three numbers".to_string(),
+                )
+            })?,
+    };
+    let (mut transmission, clamped) = Transmission::new(factor, color).clamped();
+    if clamped {
+        tracing::warn!(
+            "{}: material '{name}' ({at}): diffuse transmission factor {factor} and colour \
+             {color} clamped to 0..1 so that reflected plus transmitted light stays at \
+             most what arrives",
+            importer.path.display()
+        );
+    }
+    let uv_set = material_uv_set(material);
+    for key in [
+        "diffuseTransmissionTexture",
+        "diffuseTransmissionColorTexture",
+    ] {
+        let Some(reference) = value.get(key) else {
+            continue;
+        };
+        let (texture, set, transform) =
+            raw_texture_ref(importer, reference, &format!("{at}.{key}"))?;
+        if set != uv_set {
+            report.textures_left_out += 1;
+            continue;
+        }
+        let role = format!("{key} of material '{name}' (materials[{index}])");
+        let decoded = decoded(importer, base, textures, &texture, &role)?;
+        if key == "diffuseTransmissionTexture" {
+            transmission.factor_texture = Some(decoded);
+            transmission.factor_uv_transform = transform;
+        } else {
+            transmission.color_texture = Some(decoded);
+            transmission.uv_transform = transform;
+        }
+    }
+    Ok((transmission.factor > 0.0).then_some(transmission))
 }
 
 /// Shaders for every material plus glTF's default material (white, opaque, single-sided).
@@ -323,6 +466,7 @@ fn materials(
             shader.uv_transform = transform;
         }
         shader.emission = emission(importer, base, &mut textures, &material, report)?;
+        shader.transmission = transmission(importer, base, &mut textures, &material, report)?;
         let cutoff = match material.alpha_mode() {
             gltf::material::AlphaMode::Opaque => None,
             gltf::material::AlphaMode::Mask => Some(material.alpha_cutoff().unwrap_or(0.5)),
@@ -388,7 +532,7 @@ fn emission(
             emission.texture = Some(texture);
             emission.uv_transform = transform;
         } else {
-            report.emissive_textures_left_out += 1;
+            report.textures_left_out += 1;
         }
     }
     Ok(Some(emission))

@@ -732,3 +732,93 @@ fn emissive_textures_are_srgb_and_follow_the_uv_origin_and_bad_factors_are_error
         assert!(error.contains("b.gltf") && error.contains(place), "{error}");
     }
 }
+
+#[test]
+fn diffuse_transmission_lets_light_through_from_behind_clamped_and_textured() {
+    // KHR_materials_diffuse_transmission (the gltf crate does not parse it): quad 0
+    // transmits 0.4 of a yellow-green tint; quad 1 asks for 1.5 (clamped to 1: it then
+    // reflects nothing); quad 2 gets its factor 0.8 halved by its factor texture's alpha;
+    // quad 3 is opaque.
+    let mut png = Vec::new();
+    image::RgbaImage::from_raw(1, 1, vec![255, 255, 255, 128])
+        .unwrap()
+        .write_to(&mut std::io::Cursor::new(&mut png), image::ImageFormat::Png)
+        .unwrap();
+    let ext = |body: &str| {
+        format!(
+            r#"{{"pbrMetallicRoughness":{{"baseColorFactor":[0.6,0.5,0.4,1]}},"extensions":{{"KHR_materials_diffuse_transmission":{body}}}}}"#
+        )
+    };
+    let materials = format!(
+        "[{},{},{},{},{}]",
+        ext(r#"{"diffuseTransmissionFactor":0.4,"diffuseTransmissionColorFactor":[0.9,0.8,0.3]}"#),
+        ext(r#"{"diffuseTransmissionFactor":1.5}"#),
+        ext(r#"{"diffuseTransmissionFactor":0.8,"diffuseTransmissionTexture":{"index":0}}"#),
+        r#"{"pbrMetallicRoughness":{"baseColorFactor":[0.6,0.5,0.4,1]}}"#,
+        r#"{}"#
+    );
+    let extra = format!(
+        r#","textures":[{{"source":0}}],"images":[{{"uri":"data:image/png;base64,{}"}}]"#,
+        base64(&png)
+    );
+    let text = quads_gltf(&materials, &extra);
+    let dir = scratch("transmission", &[("t.gltf", text.as_bytes())]);
+    let mut q = Queryable::new(import(&dir.join("t.gltf")).unwrap());
+    let transmission = |i: usize| q.scene.shaders[i].transmission.clone();
+    assert_eq!(transmission(0).unwrap().factor, 0.4);
+    assert_eq!(transmission(1).unwrap().factor, 1.0);
+    assert!(transmission(3).is_none());
+    let (irradiance, theta) = (Vec3::new(3.0, 2.0, 1.0), 0.5f32);
+    let lit = |q: &mut Queryable, behind: bool| {
+        let z = if behind { -theta.cos() } else { theta.cos() };
+        q.lights = LightSet {
+            directional: vec![sylva_engine::light::DirectionalLight {
+                direction: Vec3::new(theta.sin(), 0.0, z),
+                irradiance,
+            }],
+            ..Default::default()
+        };
+        (0..4)
+            .map(|i| Vec3::from(shade_at(q, 2.0 * i as f32 + 0.5, 0.5).radiance))
+            .collect::<Vec<_>>()
+    };
+    let behind = lit(&mut q, true);
+    let front = lit(&mut q, false);
+    let e = irradiance * theta.cos() / std::f32::consts::PI;
+    let base = Vec3::new(0.6, 0.5, 0.4);
+    let grey = 128.0 / 255.0;
+    let expected_behind = [
+        0.4 * Vec3::new(0.9, 0.8, 0.3) * e,
+        e,
+        0.8 * grey * e,
+        Vec3::ZERO,
+    ];
+    let expected_front = [
+        0.6 * base * e,
+        Vec3::ZERO,
+        (1.0 - 0.8 * grey) * base * e,
+        base * e,
+    ];
+    for i in 0..4 {
+        for (seen, expected) in [
+            (behind[i], expected_behind[i]),
+            (front[i], expected_front[i]),
+        ] {
+            assert!(
+                (seen - expected).abs().max_element() < 1e-4,
+                "quad {i}: {seen} against {expected}"
+            );
+        }
+    }
+
+    let plain = r#"{}"#;
+    let bad = ext(r#"{"diffuseTransmissionFactor":0.5,"diffuseTransmissionColorFactor":[1,2]}"#);
+    let text = quads_gltf(&format!("[{bad},{plain},{plain},{plain},{plain}]"), "");
+    let dir = scratch("transmission-bad", &[("b.gltf", text.as_bytes())]);
+    let error = import(&dir.join("b.gltf")).unwrap_err().to_string();
+    assert!(
+        error.contains("b.gltf")
+            && error.contains("KHR_materials_diffuse_transmission.diffuseTransmissionColorFactor"),
+        "{error}"
+    );
+}
