@@ -129,6 +129,11 @@ struct SceneArgs {
     /// depend on it.
     #[arg(long, default_value_t = 0, allow_negative_numbers = true, value_parser = clap::value_parser!(u16).range(0..=1024))]
     threads: u16,
+    /// Leaf translucency: light from behind passes through thin leaves (the generated
+    /// grass and broadleaves, glTF's KHR_materials_diffuse_transmission). Off makes them
+    /// opaque with the same reflected light, and saves the shadow rays it costs.
+    #[arg(long, value_enum, value_name = "on|off", default_value = "on")]
+    translucency: Switch,
 }
 
 /// Quality presets of `--preset`.
@@ -324,10 +329,14 @@ fn build(world: &mut World, args: &SceneArgs) -> Result<(SceneBuild, Option<f32>
         .map_err(|e| anyhow::anyhow!("could not start the worker threads: {e}"))?;
     world.insert_resource(RenderSeed(args.seed));
     let pool = world.resource::<RenderPool>().clone();
-    match &args.gltf {
-        Some(path) => import_gltf(&pool, path, args.camera.as_deref()),
-        None => Ok((pool.install(|| build_scene(&args.scene, args.seed))?, None)),
+    let (mut scene, aspect) = match &args.gltf {
+        Some(path) => import_gltf(&pool, path, args.camera.as_deref())?,
+        None => (pool.install(|| build_scene(&args.scene, args.seed))?, None),
+    };
+    if args.translucency == Switch::Off {
+        scene.without_translucency();
     }
+    Ok((scene, aspect))
 }
 
 #[cfg(feature = "gltf")]

@@ -568,6 +568,16 @@ impl Shader {
         }
     }
 
+    /// The same surface made opaque with its reflectance kept: the base colour takes
+    /// the reflected share `1 − factor` and the transmission goes (exactly so for an
+    /// untextured factor; a factor texture is represented by its scalar factor).
+    pub fn without_transmission(mut self) -> Self {
+        if let Some(t) = self.transmission.take() {
+            self.base_color *= 1.0 - t.factor;
+        }
+        self
+    }
+
     /// Diffuse reflectance at `uv`: the albedo less the share transmitted.
     #[inline]
     pub fn reflectance(&self, uv: Vec2) -> Vec3 {

@@ -21,7 +21,7 @@ use sylva_engine::environment::EnvironmentLight;
 use sylva_engine::geometry::{Geometry, GeometryLibrary};
 use sylva_engine::light::{DirectionalLight, SkyLight};
 use sylva_engine::mesh::TriangleMesh;
-use sylva_engine::shading::{Shader, ShaderId};
+use sylva_engine::shading::{Shader, ShaderId, Transmission};
 
 /// Where a species' model comes from.
 #[derive(Clone, Debug, PartialEq)]
@@ -526,14 +526,36 @@ fn procedural_model(source: &SpeciesSource) -> Option<SpeciesModel> {
         mesh: model.mesh,
         shaders: vec![
             Shader::color(ShaderId(species::BARK), model.bark_color),
-            Shader::alpha_masked(
-                ShaderId(species::LEAF),
-                Vec3::ONE,
-                Arc::new(model.leaf_texture),
-                0.5,
+            translucent_leaf(
+                Shader::alpha_masked(
+                    ShaderId(species::LEAF),
+                    Vec3::ONE,
+                    Arc::new(model.leaf_texture),
+                    0.5,
+                ),
+                params.leaf_shape.transmission_ratio(),
+                params.leaf_color,
             ),
         ],
     })
+}
+
+/// A generated leaf shader that also transmits `ratio` × what it reflects, tinted by
+/// the leaf colour: half the diffuse light is transmitted and the base colour doubles,
+/// so the reflected light is the opaque leaf's to the bit
+/// ([`Shader::without_transmission`] gives that leaf back).
+fn translucent_leaf(leaf: Shader, ratio: f32, leaf_color: Vec3) -> Shader {
+    if ratio <= 0.0 {
+        return leaf;
+    }
+    const SHARE: f32 = 0.5;
+    let tint = leaf_color * (ratio / SHARE);
+    let (transmission, _) = Transmission::new(SHARE, tint).clamped();
+    Shader {
+        base_color: leaf.base_color / (1.0 - SHARE),
+        transmission: Some(transmission),
+        ..leaf
+    }
 }
 
 fn load_model(spec: &SpeciesSpec, scene: &str) -> Result<SpeciesModel, SceneError> {

@@ -152,6 +152,16 @@ pub struct SceneStats {
 }
 
 impl SceneBuild {
+    /// Makes every translucent shader opaque, keeping what it reflects
+    /// ([`Shader::without_transmission`]): the scene as it looks without leaf
+    /// translucency, and without the shadow rays it costs.
+    pub fn without_translucency(&mut self) {
+        for shader in &mut self.shaders {
+            *shader = std::mem::replace(shader, Shader::color(shader.id, glam::Vec3::ZERO))
+                .without_transmission();
+        }
+    }
+
     /// Every instance as the TLAS takes it: the plants, then the terrain at the origin.
     pub fn instance_descs(&self) -> Vec<InstanceDesc> {
         let plants = self.plants.iter().map(|p| InstanceDesc {
@@ -308,6 +318,38 @@ mod tests {
             .map(|g| g.mesh.positions.clone())
             .collect();
         (plants, meshes)
+    }
+
+    #[test]
+    fn generated_leaves_are_translucent_and_turning_it_off_keeps_their_reflectance() {
+        let mut scene = build_scene("forest", 1).unwrap();
+        let translucent: Vec<&Shader> = scene
+            .shaders
+            .iter()
+            .filter(|s| s.transmission.is_some())
+            .collect();
+        assert!(
+            !translucent.is_empty(),
+            "the forest's broadleaves and grass"
+        );
+        assert!(
+            translucent.iter().all(|s| s.is_alpha_masked()),
+            "only leaves transmit, never bark or the ground"
+        );
+        let uvs = [glam::Vec2::new(0.3, 0.6), glam::Vec2::new(0.71, 0.2)];
+        let before: Vec<Vec<glam::Vec3>> = scene
+            .shaders
+            .iter()
+            .map(|s| uvs.map(|uv| s.reflectance(uv)).to_vec())
+            .collect();
+        scene.without_translucency();
+        assert!(scene.shaders.iter().all(|s| s.transmission.is_none()));
+        let after: Vec<Vec<glam::Vec3>> = scene
+            .shaders
+            .iter()
+            .map(|s| uvs.map(|uv| s.reflectance(uv)).to_vec())
+            .collect();
+        assert_eq!(before, after, "the reflected light is the same to the bit");
     }
 
     #[test]

@@ -114,6 +114,17 @@ pub enum LeafShape {
 }
 
 impl LeafShape {
+    /// Light a leaf of this shape transmits relative to what it reflects: thin blades and
+    /// broad leaves pass on about as much as they reflect (a little less for grass),
+    /// thick needles next to nothing.
+    pub fn transmission_ratio(self) -> f32 {
+        match self {
+            LeafShape::Blades => 0.8,
+            LeafShape::Needles => 0.0,
+            _ => 1.0,
+        }
+    }
+
     /// Every shape.
     pub const ALL: [LeafShape; 6] = [
         LeafShape::Blades,
