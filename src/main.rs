@@ -228,6 +228,10 @@ struct RenderArgs {
     /// Camera samples per pixel per frame [default: 4, or the preset's].
     #[arg(long, allow_negative_numbers = true, value_parser = clap::value_parser!(u32).range(1..=65536))]
     spp: Option<u32>,
+    /// Diffuse bounces of indirect light after the first hit: continuation rays with
+    /// direct light at every surface they reach (0 = direct light only).
+    #[arg(long, default_value_t = 0, allow_negative_numbers = true, value_parser = clap::value_parser!(u32).range(0..=16))]
+    bounces: u32,
     /// Sky shadow rays per camera hit, or virtual lights sampled per hit with --env
     /// (0 = sun only) [default: 2, or the preset's].
     #[arg(long, visible_alias = "light-samples", allow_negative_numbers = true, value_parser = clap::value_parser!(u32).range(0..=1024))]
@@ -602,6 +606,7 @@ fn render(args: RenderArgs) -> Result<()> {
     scene.camera.height = args.height;
     scene.camera.samples_per_pixel = spp;
     scene.camera.sky_samples = samples;
+    scene.camera.bounces = args.bounces;
     scene.camera.exposure = args.exposure;
     let stats = scene.stats();
     let (generate_time, blas_time) = (scene.generate_time, scene.blas_time);

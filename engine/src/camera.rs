@@ -45,6 +45,8 @@ pub struct Camera {
     pub samples_per_pixel: u32,
     /// Sky shadow rays per camera hit.
     pub sky_samples: u32,
+    /// Diffuse bounces of indirect light after the first hit (0: direct light only).
+    pub bounces: u32,
 }
 
 impl Default for Camera {
@@ -57,6 +59,7 @@ impl Default for Camera {
             exposure: 0.0,
             samples_per_pixel: 1,
             sky_samples: 2,
+            bounces: 0,
         }
     }
 }

@@ -68,6 +68,8 @@ pub struct RenderParams {
     pub transparency: Option<TransparencyCurve>,
     /// Interleaved light subsets, off when `None`.
     pub light_subsets: Option<LightSubsets>,
+    /// Diffuse bounces of indirect light (0: direct light only).
+    pub bounces: u32,
 }
 
 impl Default for RenderParams {
@@ -79,6 +81,7 @@ impl Default for RenderParams {
             tile_size: 16,
             transparency: None,
             light_subsets: None,
+            bounces: 0,
         }
     }
 }
@@ -89,6 +92,7 @@ impl RenderParams {
         Self {
             samples_per_pixel: camera.samples_per_pixel.max(1),
             sky_samples: camera.sky_samples,
+            bounces: camera.bounces,
             seed,
             ..Default::default()
         }
@@ -109,6 +113,8 @@ impl RenderParams {
 pub struct SampleShading {
     /// Light samples (sky shadow rays) per hit.
     pub light_samples: u32,
+    /// Diffuse bounces of indirect light after the first hit (0: direct light only).
+    pub bounces: u32,
     /// Adaptive transparency, off when `None`.
     pub transparency: Option<TransparencyCurve>,
     /// The subset assignment and the subset this sample draws its lights from; all
@@ -201,6 +207,69 @@ pub struct SurfacePoint {
 enum Side {
     Front,
     Back,
+}
+
+/// What a surface point does with diffuse light: reflect it, transmit it.
+#[derive(Clone, Copy, Debug)]
+struct Material {
+    reflectance: Vec3A,
+    transmittance: Vec3A,
+}
+
+impl Material {
+    fn is_translucent(&self) -> bool {
+        self.transmittance != Vec3A::ZERO
+    }
+
+    /// What light arriving on `side` is multiplied by.
+    #[inline]
+    fn on(&self, side: Side) -> Vec3A {
+        match side {
+            Side::Front => self.reflectance,
+            Side::Back => self.transmittance,
+        }
+    }
+
+    /// The probability of sampling the front: in proportion to what each side passes on
+    /// (1 for an opaque surface).
+    #[inline]
+    fn front_share(&self) -> f32 {
+        if !self.is_translucent() {
+            return 1.0;
+        }
+        let (r, t) = (luminance(self.reflectance), luminance(self.transmittance));
+        if r + t > 0.0 { r / (r + t) } else { 0.5 }
+    }
+}
+
+/// A cosine-distributed direction on the side `u0` picks (the front with probability
+/// `front_share`; `u0`, rescaled, still places the direction), with the side, its
+/// probability and the outward normal of that side; `None` below the geometric surface.
+#[inline]
+fn sided_direction(
+    surface: &SurfacePoint,
+    (t, b): (Vec3A, Vec3A),
+    front_share: f32,
+    u0: f32,
+    u1: f32,
+) -> Option<(Vec3A, Side, f32, Vec3A)> {
+    let (side, u0, share) = if u0 < front_share {
+        (Side::Front, u0 / front_share, front_share)
+    } else {
+        let back_share = 1.0 - front_share;
+        (
+            Side::Back,
+            ((u0 - front_share) / back_share).min(1.0),
+            back_share,
+        )
+    };
+    let local = cosine_hemisphere(Vec2::new(u0, u1));
+    let (outward, normal) = match side {
+        Side::Front => (surface.geometric_normal, surface.shading_normal),
+        Side::Back => (-surface.geometric_normal, -surface.shading_normal),
+    };
+    let d = t * local.x + b * local.y + normal * local.z;
+    (outward.dot(d) > 0.0).then_some((d, side, share, outward))
 }
 
 /// Rec. 709 luminance.
@@ -508,6 +577,145 @@ impl<'a> RenderScene<'a> {
         (!self.occluded_within(&shadow, allowance, stats)).then_some((cos, side))
     }
 
+    /// Light arriving directly at `surface` from the sun, the sky or the environment's
+    /// virtual lights (`shading.light_samples` of them, drawing random numbers from
+    /// `dimension` on), reflected or transmitted toward the viewer.
+    #[expect(
+        clippy::too_many_arguments,
+        reason = "the per-vertex inputs of one shading step; a struct would only rename them"
+    )]
+    #[inline]
+    fn direct_light(
+        &self,
+        surface: &SurfacePoint,
+        material: &Material,
+        key: &SampleKey,
+        dimension: u32,
+        shading: &SampleShading,
+        allowance: Option<u32>,
+        stats: &mut TraversalStats,
+    ) -> Vec3A {
+        let translucent = material.is_translucent();
+        let side_factor = |side: Side| material.on(side);
+        let ns = surface.shading_normal;
+        let mut radiance = Vec3A::ZERO;
+        for light in &self.lights.directional {
+            if let Some((cos, side)) =
+                self.lit_cosine(surface, light.direction, translucent, allowance, stats)
+            {
+                radiance += side_factor(side)
+                    * Vec3A::from(light.irradiance)
+                    * (cos * std::f32::consts::FRAC_1_PI);
+            }
+        }
+        let samples = shading.light_samples;
+        if let Some(environment) = &self.lights.environment {
+            // Unbiased for the discrete set: E[f(L)/p(L)] = Σ_i albedo/π · E_i · cos_i · V_i.
+            // With subsets the selection is stratified, each stratum equally likely over
+            // the render's random offset, so the expectation is the same.
+            for k in 0..samples {
+                let u = key.get(dimension + k);
+                let u = match shading.light_subset {
+                    Some((subsets, subset)) => subsets.selection(subset, k, samples, u),
+                    None => stratified_selection(k, samples, u),
+                };
+                let Some(light) = environment.lights.sample(u) else {
+                    continue;
+                };
+                if let Some((cos, side)) =
+                    self.lit_cosine(surface, light.direction, translucent, allowance, stats)
+                {
+                    let weight =
+                        cos * std::f32::consts::FRAC_1_PI / (light.probability * samples as f32);
+                    radiance += side_factor(side) * Vec3A::from(light.irradiance) * weight;
+                }
+            }
+        } else if let Some(sky) = &self.lights.sky {
+            let (t, b) = orthonormal_basis(ns);
+            // A translucent surface picks the side of each sample in proportion to what
+            // that side passes on; the first random number, rescaled, still places the
+            // direction (an opaque one keeps it as it is: the front every time).
+            let front_share = material.front_share();
+            for k in 0..samples {
+                let [u0, u1] = key.get2(dimension + 2 * k).to_array();
+                let Some((d, side, share, outward)) =
+                    sided_direction(surface, (t, b), front_share, u0, u1)
+                else {
+                    continue;
+                };
+                let shadow = Ray::new(surface.point.offset_origin(outward, d), d);
+                if !self.occluded_within(&shadow, allowance, stats) {
+                    // Cosine sampling cancels the cos/π of the Lambertian BRDF; the side's
+                    // share is its probability.
+                    radiance += side_factor(side) * sky.radiance(d) / (share * samples as f32);
+                }
+            }
+        }
+        radiance
+    }
+
+    /// Light arriving at `surface` after up to `shading.bounces` diffuse bounces: a
+    /// cosine-distributed continuation ray (to the front or, through a translucent
+    /// surface, the back), direct light at every surface it reaches, Russian roulette
+    /// from the second bounce on. Rays that escape add nothing: direct light already
+    /// counts the sky. Bounce rays pass alpha holes exactly.
+    fn indirect_light(
+        &self,
+        first: &SurfacePoint,
+        material: &Material,
+        key: &SampleKey,
+        shading: &SampleShading,
+        stats: &mut TraversalStats,
+    ) -> Vec3A {
+        let stride = 2 * shading.light_samples + 3;
+        let mut radiance = Vec3A::ZERO;
+        let mut throughput = Vec3A::ONE;
+        let (mut surface, mut material) = (*first, *material);
+        for bounce in 1..=shading.bounces {
+            // The random numbers of vertex `bounce - 1`'s continuation, after its light
+            // samples.
+            let dimension = SKY_DIMENSION + (bounce - 1) * stride + 2 * shading.light_samples;
+            if bounce > 1 {
+                let survive = throughput.max_element().min(1.0);
+                if survive <= 0.0 || key.get(dimension + 2) >= survive {
+                    break;
+                }
+                throughput /= survive;
+            }
+            let [u0, u1] = key.get2(dimension).to_array();
+            let basis = orthonormal_basis(surface.shading_normal);
+            let Some((d, side, share, outward)) =
+                sided_direction(&surface, basis, material.front_share(), u0, u1)
+            else {
+                break;
+            };
+            // Cosine sampling cancels the cos/π of the Lambertian BSDF.
+            throughput *= material.on(side) / share;
+            let ray = Ray::new(surface.point.offset_origin(outward, d), d);
+            let Some((hit, _)) = self.closest_adaptive(&ray, None, stats) else {
+                break;
+            };
+            surface = self.surface(&hit, ray.direction);
+            let shader = self.shaders.get(surface.shader);
+            material = Material {
+                reflectance: shader.reflectance(surface.uv).into(),
+                transmittance: shader.transmittance(surface.uv).into(),
+            };
+            let light = Vec3A::from(shader.emission(surface.uv))
+                + self.direct_light(
+                    &surface,
+                    &material,
+                    key,
+                    SKY_DIMENSION + bounce * stride,
+                    shading,
+                    None,
+                    stats,
+                );
+            radiance += throughput * light;
+        }
+        radiance
+    }
+
     /// Radiance arriving along `ray`: direct sun and sky (or environment: light samples
     /// from the virtual lights, picked by luminance within the sample's subset) on
     /// Lambertian surfaces. A hole made opaque by adaptive transparency is shaded with its
@@ -561,86 +769,26 @@ impl<'a> RenderScene<'a> {
             Vec3A::from(transmittance),
             Vec3A::from(emission),
         );
-        let translucent = transmittance != Vec3A::ZERO;
-        let side_factor = |side: Side| match side {
-            Side::Front => albedo,
-            Side::Back => transmittance,
+        let material = Material {
+            reflectance: albedo,
+            transmittance,
         };
         // Shadow rays get the allowance at their shading point's distance from the camera.
         let allowance = curve.map(|c| c.allowance(hit.t));
-        let (ng, ns) = (surface.geometric_normal, surface.shading_normal);
-        let mut radiance = emission;
-        for light in &self.lights.directional {
-            if let Some((cos, side)) =
-                self.lit_cosine(&surface, light.direction, translucent, allowance, stats)
-            {
-                radiance += side_factor(side)
-                    * Vec3A::from(light.irradiance)
-                    * (cos * std::f32::consts::FRAC_1_PI);
-            }
+        let mut radiance = emission
+            + self.direct_light(
+                &surface,
+                &material,
+                key,
+                SKY_DIMENSION,
+                shading,
+                allowance,
+                stats,
+            );
+        if shading.bounces > 0 {
+            radiance += self.indirect_light(&surface, &material, key, shading, stats);
         }
-        let samples = shading.light_samples;
-        if let Some(environment) = &self.lights.environment {
-            // Unbiased for the discrete set: E[f(L)/p(L)] = Σ_i albedo/π · E_i · cos_i · V_i.
-            // With subsets the selection is stratified, each stratum equally likely over
-            // the render's random offset, so the expectation is the same.
-            for k in 0..samples {
-                let u = key.get(SKY_DIMENSION + k);
-                let u = match shading.light_subset {
-                    Some((subsets, subset)) => subsets.selection(subset, k, samples, u),
-                    None => stratified_selection(k, samples, u),
-                };
-                let Some(light) = environment.lights.sample(u) else {
-                    continue;
-                };
-                if let Some((cos, side)) =
-                    self.lit_cosine(&surface, light.direction, translucent, allowance, stats)
-                {
-                    let weight =
-                        cos * std::f32::consts::FRAC_1_PI / (light.probability * samples as f32);
-                    radiance += side_factor(side) * Vec3A::from(light.irradiance) * weight;
-                }
-            }
-        } else if let Some(sky) = &self.lights.sky {
-            let (t, b) = orthonormal_basis(ns);
-            // A translucent surface picks the side of each sample in proportion to what
-            // that side passes on; the first random number, rescaled, still places the
-            // direction (an opaque one keeps it as it is: the front every time).
-            let front_share = if translucent {
-                let (r, t) = (luminance(albedo), luminance(transmittance));
-                if r + t > 0.0 { r / (r + t) } else { 0.5 }
-            } else {
-                1.0
-            };
-            for k in 0..samples {
-                let [u0, u1] = key.get2(SKY_DIMENSION + 2 * k).to_array();
-                let (side, u0, share) = if u0 < front_share {
-                    (Side::Front, u0 / front_share, front_share)
-                } else {
-                    let back_share = 1.0 - front_share;
-                    (
-                        Side::Back,
-                        ((u0 - front_share) / back_share).min(1.0),
-                        back_share,
-                    )
-                };
-                let local = cosine_hemisphere(Vec2::new(u0, u1));
-                let (outward, normal) = match side {
-                    Side::Front => (ng, ns),
-                    Side::Back => (-ng, -ns),
-                };
-                let d = t * local.x + b * local.y + normal * local.z;
-                if outward.dot(d) <= 0.0 {
-                    continue;
-                }
-                let shadow = Ray::new(surface.point.offset_origin(outward, d), d);
-                if !self.occluded_within(&shadow, allowance, stats) {
-                    // Cosine sampling cancels the cos/π of the Lambertian BRDF; the side's
-                    // share is its probability.
-                    radiance += side_factor(side) * sky.radiance(d) / (share * samples as f32);
-                }
-            }
-        }
+        let ng = surface.geometric_normal;
         ShadedSample {
             radiance,
             albedo,
@@ -677,6 +825,7 @@ pub fn render_tile(
     let spp = params.samples_per_pixel;
     let mut shading = SampleShading {
         transparency: params.transparency,
+        bounces: params.bounces,
         ..SampleShading::plain(params.sky_samples)
     };
     for y in tile.y..tile.y + tile.height {

@@ -1,0 +1,197 @@
+//! Indirect light against closed-form answers: inside a closed box whose walls emit E
+//! and reflect ρ, the radiance after N bounces is E (1 + ρ + … + ρᴺ); walls that also
+//! transmit send that share out of the box, where it is lost.
+
+use glam::{Affine3A, Vec3, Vec3A};
+use sylva_engine::bvh::{BuildParams, TraversalStats};
+use sylva_engine::geometry::{Geometry, GeometryLibrary};
+use sylva_engine::light::LightSet;
+use sylva_engine::math::Ray;
+use sylva_engine::mesh::TriangleMesh;
+use sylva_engine::opacity::OpacityMaps;
+use sylva_engine::render::{RenderScene, SampleShading};
+use sylva_engine::sampling::SampleKey;
+use sylva_engine::shading::{Emission, Shader, ShaderId, ShaderTable, Transmission};
+use sylva_engine::tlas::{InstanceDesc, TopLevel};
+
+const EMITTED: Vec3 = Vec3::new(1.0, 0.5, 0.25);
+
+/// A closed 2 m cube around the origin, shader 0 on every face.
+fn closed_box() -> (GeometryLibrary, TopLevel) {
+    let corner = |i: u32| {
+        Vec3::new(
+            if i & 1 == 0 { -1.0 } else { 1.0 },
+            if i & 2 == 0 { -1.0 } else { 1.0 },
+            if i & 4 == 0 { -1.0 } else { 1.0 },
+        )
+    };
+    let faces: [[u32; 4]; 6] = [
+        [0, 1, 3, 2],
+        [4, 6, 7, 5],
+        [0, 4, 5, 1],
+        [2, 3, 7, 6],
+        [0, 2, 6, 4],
+        [1, 5, 7, 3],
+    ];
+    let indices = faces
+        .iter()
+        .flat_map(|[a, b, c, d]| [[*a, *b, *c], [*a, *c, *d]])
+        .collect::<Vec<_>>();
+    let mesh = TriangleMesh {
+        positions: (0..8).map(corner).collect(),
+        shaders: vec![0; indices.len()],
+        indices,
+        ..Default::default()
+    };
+    let mut library = GeometryLibrary::default();
+    let id = library.add(Geometry::new("box", mesh, BuildParams::BALANCED).unwrap());
+    let top = TopLevel::build(
+        &library,
+        &[InstanceDesc {
+            transform: Affine3A::IDENTITY,
+            geometry: id,
+        }],
+        BuildParams::BALANCED,
+    );
+    (library, top)
+}
+
+/// Mean radiance and its standard error seen from inside the box over `n` keys.
+fn seen_inside(shader: Shader, bounces: u32, n: u32) -> (Vec3, Vec3) {
+    let (library, top_level) = closed_box();
+    let shaders = ShaderTable::new(vec![shader]);
+    let lights = LightSet::default();
+    let scene = RenderScene {
+        geometry: &library,
+        top_level: &top_level,
+        shaders: &shaders,
+        lights: &lights,
+        opacity: &OpacityMaps::default(),
+    };
+    let shading = SampleShading {
+        bounces,
+        ..SampleShading::plain(1)
+    };
+    let (mut sum, mut sum_sq) = (Vec3::ZERO, Vec3::ZERO);
+    for k in 0..n {
+        let direction = Vec3A::new(0.3, -0.5, 0.8).normalize();
+        let ray = Ray::new(Vec3A::new(0.1, 0.2, -0.3), direction);
+        let key = SampleKey::new(9, 0, 0, k, 0);
+        let v = Vec3::from(scene.radiance(&ray, &key, &shading, &mut TraversalStats::default()));
+        sum += v;
+        sum_sq += v * v;
+    }
+    let mean = sum / n as f32;
+    let error = ((sum_sq / n as f32 - mean * mean).max(Vec3::ZERO) / n as f32).powf(0.5);
+    (mean, error)
+}
+
+fn glowing(reflectance: f32, transmission: Option<Transmission>) -> Shader {
+    Shader {
+        emission: Some(Emission {
+            radiance: EMITTED,
+            texture: None,
+            uv_transform: None,
+        }),
+        transmission,
+        ..Shader::color(ShaderId(0), Vec3::splat(reflectance))
+    }
+}
+
+fn series(rho: f32, bounces: u32) -> f32 {
+    (0..=bounces).map(|k| rho.powi(k as i32)).sum()
+}
+
+#[test]
+fn a_closed_glowing_box_gives_the_geometric_series_of_its_reflectance() {
+    // No bounce: the wall's own emission; one bounce: every continuation ray meets a
+    // wall, so the answer is exact without noise.
+    let (zero, _) = seen_inside(glowing(0.5, None), 0, 4);
+    assert_eq!(zero, EMITTED);
+    let (one, error) = seen_inside(glowing(0.5, None), 1, 64);
+    assert!((one - EMITTED * 1.5).abs().max_element() < 1e-5, "{one}");
+    assert!(error.max_element() < 1e-5);
+    // Four bounces with Russian roulette from the second on: unbiased, within 4 σ.
+    let (four, error) = seen_inside(glowing(0.5, None), 4, 20_000);
+    let expected = EMITTED * series(0.5, 4);
+    assert!(
+        ((four - expected).abs() - 4.0 * error).max_element() <= 1e-3,
+        "{four} ± {error} against {expected}"
+    );
+}
+
+#[test]
+fn light_transmitted_out_of_a_closed_box_is_lost_and_what_is_reflected_stays() {
+    // Walls reflecting 0.3 and transmitting 0.5 (factor 0.5 of tint 1, base 0.6): one
+    // bounce sees E (1 + 0.3) on average, whichever side each sample picks.
+    let shader = glowing(0.6, Some(Transmission::new(0.5, Vec3::ONE)));
+    let (mean, error) = seen_inside(shader, 1, 20_000);
+    let expected = EMITTED * series(0.3, 1);
+    assert!(
+        ((mean - expected).abs() - 4.0 * error).max_element() <= 1e-3,
+        "{mean} ± {error} against {expected}"
+    );
+}
+
+#[test]
+fn an_open_sheet_under_a_uniform_sky_gains_nothing_from_bounces() {
+    // The white furnace, open: a sheet with r + t = 1 under a constant sky is as bright
+    // as the sky with any number of bounces (escaping bounce rays add nothing: direct
+    // light already counts the sky, so nothing is counted twice).
+    let mut library = GeometryLibrary::default();
+    let sheet = TriangleMesh {
+        positions: vec![
+            Vec3::new(-50.0, 0.0, -50.0),
+            Vec3::new(50.0, 0.0, -50.0),
+            Vec3::new(50.0, 0.0, 50.0),
+            Vec3::new(-50.0, 0.0, 50.0),
+        ],
+        indices: vec![[0, 2, 1], [0, 3, 2]],
+        shaders: vec![0, 0],
+        ..Default::default()
+    };
+    let id = library.add(Geometry::new("sheet", sheet, BuildParams::BALANCED).unwrap());
+    let top_level = TopLevel::build(
+        &library,
+        &[InstanceDesc {
+            transform: Affine3A::IDENTITY,
+            geometry: id,
+        }],
+        BuildParams::BALANCED,
+    );
+    let sky = Vec3::new(1.0, 0.8, 0.6);
+    let lights = LightSet {
+        sky: Some(sylva_engine::light::SkyLight::constant(sky)),
+        ..Default::default()
+    };
+    let shaders = ShaderTable::new(vec![Shader {
+        transmission: Some(Transmission::new(0.35, Vec3::ONE)),
+        ..Shader::color(ShaderId(0), Vec3::ONE)
+    }]);
+    let scene = RenderScene {
+        geometry: &library,
+        top_level: &top_level,
+        shaders: &shaders,
+        lights: &lights,
+        opacity: &OpacityMaps::default(),
+    };
+    let shading = SampleShading {
+        bounces: 3,
+        ..SampleShading::plain(4)
+    };
+    let n = 4000;
+    let (mut sum, mut sum_sq) = (Vec3::ZERO, Vec3::ZERO);
+    for k in 0..n {
+        let ray = Ray::new(Vec3A::new(0.0, 10.0, 0.0), Vec3A::NEG_Y);
+        let key = SampleKey::new(4, 0, 0, k, 0);
+        let v = Vec3::from(scene.radiance(&ray, &key, &shading, &mut TraversalStats::default()));
+        sum += v;
+        sum_sq += v * v;
+    }
+    let mean = sum / n as f32;
+    let error = ((sum_sq / n as f32 - mean * mean).max(Vec3::ZERO) / n as f32).powf(0.5);
+    assert!(
+        ((mean - sky).abs() - 4.0 * error).max_element() <= 2e-4,
+        "{mean} ± {error} against {sky}"
+    );
+}
