@@ -34,6 +34,8 @@ pub struct Setting {
     /// The display filter whose output is measured, if any (the film is measured
     /// without it).
     pub filter: Option<DiscontinuityFilter>,
+    /// Diffuse bounces of indirect light.
+    pub bounces: u32,
 }
 
 impl Setting {
@@ -50,6 +52,7 @@ impl Setting {
             filter: Some(DiscontinuityFilter::for_pattern(
                 LightInterleave::default().pattern,
             )),
+            bounces: 0,
         }
     }
 
@@ -101,6 +104,19 @@ impl Setting {
         ]
     }
 
+    /// Every setting `--configs` may name: the standard ones, and `bounces1` (the still
+    /// preset with one bounce of indirect light; naming it makes the reference carry
+    /// one bounce too, so the direct-light settings show the light they leave out).
+    pub fn available() -> Vec<Setting> {
+        let mut all = Self::standard();
+        all.push(Setting {
+            name: "bounces1".into(),
+            bounces: 1,
+            ..Self::still()
+        });
+        all
+    }
+
     /// Puts this setting on `camera` (which restarts its accumulation) and sizes the
     /// render pool.
     pub fn apply(
@@ -113,6 +129,7 @@ impl Setting {
         if let Some(mut c) = entity.get_mut::<Camera>() {
             c.samples_per_pixel = self.samples_per_pixel;
             c.sky_samples = self.light_samples;
+            c.bounces = self.bounces;
         }
         entity.insert(self.interleave);
         match self.transparency {

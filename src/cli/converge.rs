@@ -35,7 +35,8 @@ pub fn run(args: ConvergeArgs) -> Result<()> {
     let camera = spawned.camera;
     let mut schedule = frame_schedule();
 
-    let reference = reference(&args, &mut world, &mut schedule, camera)?;
+    let bounces = settings.iter().map(|s| s.bounces).max().unwrap_or(0);
+    let reference = reference(&args, bounces, &mut world, &mut schedule, camera)?;
     let mut runs: Vec<(Setting, Vec<ErrorSample>)> = Vec::new();
     for setting in settings {
         setting
@@ -84,10 +85,10 @@ pub fn run(args: ConvergeArgs) -> Result<()> {
 
 /// The settings named in `--configs`, or all standard ones.
 fn chosen_settings(names: &[String]) -> Result<Vec<Setting>> {
-    let all = Setting::standard();
     if names.is_empty() {
-        return Ok(all);
+        return Ok(Setting::standard());
     }
+    let all = Setting::available();
     names
         .iter()
         .map(|name| {
@@ -120,12 +121,13 @@ fn spinner(quiet: bool, what: &str) -> ProgressBar {
 /// scene, view and reference length, rendered (and cached) otherwise.
 fn reference(
     args: &ConvergeArgs,
+    bounces: u32,
     world: &mut World,
     schedule: &mut Schedule,
     camera: Entity,
 ) -> Result<Vec<Vec3>> {
     let key = fnv1a(&format!(
-        "reference|{}|{}|{}x{}|{}|{:?}|{}|{}",
+        "reference|{}|{}|{}x{}|{}|{:?}|{}|{}|translucency {:?}|bounces {}",
         scene_label(&args.scene),
         args.scene.seed,
         args.width,
@@ -133,7 +135,9 @@ fn reference(
         args.crop,
         args.env,
         args.lights,
-        args.reference_frames
+        args.reference_frames,
+        args.scene.translucency,
+        bounces
     ));
     let cache = args.out.join("reference.film");
     if let Ok(film) = Film::read_checkpoint(&cache, key) {
@@ -149,6 +153,7 @@ fn reference(
     }
     Setting {
         name: "reference".into(),
+        bounces,
         ..Setting::still()
     }
     .apply(world, camera)
