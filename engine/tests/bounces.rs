@@ -195,3 +195,94 @@ fn an_open_sheet_under_a_uniform_sky_gains_nothing_from_bounces() {
         "{mean} ± {error} against {sky}"
     );
 }
+
+/// A `size`-wide square at height `y` facing up, shader `shader`.
+fn square(y: f32, size: f32, shader: u32) -> TriangleMesh {
+    let h = size / 2.0;
+    TriangleMesh {
+        positions: vec![
+            Vec3::new(-h, y, -h),
+            Vec3::new(h, y, -h),
+            Vec3::new(h, y, h),
+            Vec3::new(-h, y, h),
+        ],
+        indices: vec![[0, 2, 1], [0, 3, 2]],
+        shaders: vec![shader, shader],
+        ..Default::default()
+    }
+}
+
+#[test]
+fn ground_under_a_translucent_canopy_gets_the_sky_through_it_bounce_by_bounce() {
+    // A ground (reflectance g) 1 m under a translucent canopy (reflectance c, transmits
+    // t) in a sky of radiance L above the horizon and none below. The ground's shadow
+    // rays end on the canopy, so all its light comes by bounces: the canopy's underside
+    // sends down t·L plus c × the ground's radiance. A round trip ground → canopy →
+    // ground takes two bounces, so after N the ground shows g·t·L · (1 + g·c + … +
+    // (g·c)^(⌈N/2⌉−1)), tending to g·t·L / (1 − g·c).
+    let (g, base, factor) = (0.5f32, 0.6f32, 0.5f32);
+    let (c, t) = (base * (1.0 - factor), factor);
+    let sky = Vec3::new(1.0, 0.9, 0.7);
+    let mut library = GeometryLibrary::default();
+    let ground = library
+        .add(Geometry::new("ground", square(0.0, 4000.0, 0), BuildParams::BALANCED).unwrap());
+    let canopy = library
+        .add(Geometry::new("canopy", square(1.0, 4000.0, 1), BuildParams::BALANCED).unwrap());
+    let top_level = TopLevel::build(
+        &library,
+        &[ground, canopy].map(|geometry| InstanceDesc {
+            transform: Affine3A::IDENTITY,
+            geometry,
+        }),
+        BuildParams::BALANCED,
+    );
+    let shaders = ShaderTable::new(vec![
+        Shader::color(ShaderId(0), Vec3::splat(g)),
+        Shader {
+            transmission: Some(Transmission::new(factor, Vec3::ONE)),
+            ..Shader::color(ShaderId(1), Vec3::splat(base))
+        },
+    ]);
+    let lights = LightSet {
+        sky: Some(sylva_engine::light::SkyLight {
+            zenith: sky,
+            horizon: sky,
+            ground: Vec3::ZERO,
+        }),
+        ..Default::default()
+    };
+    let scene = RenderScene {
+        geometry: &library,
+        top_level: &top_level,
+        shaders: &shaders,
+        lights: &lights,
+        opacity: &OpacityMaps::default(),
+    };
+    for bounces in [0, 1, 2, 3, 5] {
+        let shading = SampleShading {
+            bounces,
+            ..SampleShading::plain(2)
+        };
+        let n = 20_000;
+        let (mut sum, mut sum_sq) = (Vec3::ZERO, Vec3::ZERO);
+        for k in 0..n {
+            let ray = Ray::new(Vec3A::new(0.0, 0.5, 0.0), Vec3A::new(0.2, -1.0, 0.1));
+            let key = SampleKey::new(6, 0, 0, k, 0);
+            let v =
+                Vec3::from(scene.radiance(&ray, &key, &shading, &mut TraversalStats::default()));
+            sum += v;
+            sum_sq += v * v;
+        }
+        let mean = sum / n as f32;
+        let error = ((sum_sq / n as f32 - mean * mean).max(Vec3::ZERO) / n as f32).powf(0.5);
+        let expected = if bounces == 0 {
+            Vec3::ZERO
+        } else {
+            g * t * sky * series(g * c, bounces.div_ceil(2) - 1)
+        };
+        assert!(
+            ((mean - expected).abs() - 4.0 * error).max_element() <= 1e-3,
+            "{bounces} bounces: {mean} ± {error} against {expected}"
+        );
+    }
+}
