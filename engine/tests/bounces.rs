@@ -2,6 +2,9 @@
 //! and reflect ρ, the radiance after N bounces is E (1 + ρ + … + ρᴺ); walls that also
 //! transmit send that share out of the box, where it is lost.
 
+mod common;
+
+use common::{ground_plane, mean_and_error};
 use glam::{Affine3A, Vec3, Vec3A};
 use sylva_engine::bvh::{BuildParams, TraversalStats};
 use sylva_engine::geometry::{Geometry, GeometryLibrary};
@@ -72,18 +75,12 @@ fn seen_inside(shader: Shader, bounces: u32, n: u32) -> (Vec3, Vec3) {
         bounces,
         ..SampleShading::plain(1)
     };
-    let (mut sum, mut sum_sq) = (Vec3::ZERO, Vec3::ZERO);
-    for k in 0..n {
-        let direction = Vec3A::new(0.3, -0.5, 0.8).normalize();
-        let ray = Ray::new(Vec3A::new(0.1, 0.2, -0.3), direction);
+    let direction = Vec3A::new(0.3, -0.5, 0.8).normalize();
+    let ray = Ray::new(Vec3A::new(0.1, 0.2, -0.3), direction);
+    mean_and_error(n, |k| {
         let key = SampleKey::new(9, 0, 0, k, 0);
-        let v = Vec3::from(scene.radiance(&ray, &key, &shading, &mut TraversalStats::default()));
-        sum += v;
-        sum_sq += v * v;
-    }
-    let mean = sum / n as f32;
-    let error = ((sum_sq / n as f32 - mean * mean).max(Vec3::ZERO) / n as f32).powf(0.5);
-    (mean, error)
+        Vec3::from(scene.radiance(&ray, &key, &shading, &mut TraversalStats::default()))
+    })
 }
 
 fn glowing(reflectance: f32, transmission: Option<Transmission>) -> Shader {
@@ -138,27 +135,7 @@ fn an_open_sheet_under_a_uniform_sky_gains_nothing_from_bounces() {
     // The white furnace, open: a sheet with r + t = 1 under a constant sky is as bright
     // as the sky with any number of bounces (escaping bounce rays add nothing: direct
     // light already counts the sky, so nothing is counted twice).
-    let mut library = GeometryLibrary::default();
-    let sheet = TriangleMesh {
-        positions: vec![
-            Vec3::new(-50.0, 0.0, -50.0),
-            Vec3::new(50.0, 0.0, -50.0),
-            Vec3::new(50.0, 0.0, 50.0),
-            Vec3::new(-50.0, 0.0, 50.0),
-        ],
-        indices: vec![[0, 2, 1], [0, 3, 2]],
-        shaders: vec![0, 0],
-        ..Default::default()
-    };
-    let id = library.add(Geometry::new("sheet", sheet, BuildParams::BALANCED).unwrap());
-    let top_level = TopLevel::build(
-        &library,
-        &[InstanceDesc {
-            transform: Affine3A::IDENTITY,
-            geometry: id,
-        }],
-        BuildParams::BALANCED,
-    );
+    let (library, top_level) = ground_plane();
     let sky = Vec3::new(1.0, 0.8, 0.6);
     let lights = LightSet {
         sky: Some(sylva_engine::light::SkyLight::constant(sky)),
@@ -179,17 +156,11 @@ fn an_open_sheet_under_a_uniform_sky_gains_nothing_from_bounces() {
         bounces: 3,
         ..SampleShading::plain(4)
     };
-    let n = 4000;
-    let (mut sum, mut sum_sq) = (Vec3::ZERO, Vec3::ZERO);
-    for k in 0..n {
-        let ray = Ray::new(Vec3A::new(0.0, 10.0, 0.0), Vec3A::NEG_Y);
+    let ray = Ray::new(Vec3A::new(0.0, 10.0, 0.0), Vec3A::NEG_Y);
+    let (mean, error) = mean_and_error(4000, |k| {
         let key = SampleKey::new(4, 0, 0, k, 0);
-        let v = Vec3::from(scene.radiance(&ray, &key, &shading, &mut TraversalStats::default()));
-        sum += v;
-        sum_sq += v * v;
-    }
-    let mean = sum / n as f32;
-    let error = ((sum_sq / n as f32 - mean * mean).max(Vec3::ZERO) / n as f32).powf(0.5);
+        Vec3::from(scene.radiance(&ray, &key, &shading, &mut TraversalStats::default()))
+    });
     assert!(
         ((mean - sky).abs() - 4.0 * error).max_element() <= 2e-4,
         "{mean} ± {error} against {sky}"
@@ -263,18 +234,11 @@ fn ground_under_a_translucent_canopy_gets_the_sky_through_it_bounce_by_bounce() 
             bounces,
             ..SampleShading::plain(2)
         };
-        let n = 20_000;
-        let (mut sum, mut sum_sq) = (Vec3::ZERO, Vec3::ZERO);
-        for k in 0..n {
-            let ray = Ray::new(Vec3A::new(0.0, 0.5, 0.0), Vec3A::new(0.2, -1.0, 0.1));
+        let ray = Ray::new(Vec3A::new(0.0, 0.5, 0.0), Vec3A::new(0.2, -1.0, 0.1));
+        let (mean, error) = mean_and_error(20_000, |k| {
             let key = SampleKey::new(6, 0, 0, k, 0);
-            let v =
-                Vec3::from(scene.radiance(&ray, &key, &shading, &mut TraversalStats::default()));
-            sum += v;
-            sum_sq += v * v;
-        }
-        let mean = sum / n as f32;
-        let error = ((sum_sq / n as f32 - mean * mean).max(Vec3::ZERO) / n as f32).powf(0.5);
+            Vec3::from(scene.radiance(&ray, &key, &shading, &mut TraversalStats::default()))
+        });
         let expected = if bounces == 0 {
             Vec3::ZERO
         } else {

@@ -220,3 +220,16 @@ pub fn ground_plane() -> (GeometryLibrary, TopLevel) {
     );
     (library, top_level)
 }
+
+/// Mean and standard error per channel of `sample(k)` over `k = 0 .. n`.
+pub fn mean_and_error(n: u32, mut sample: impl FnMut(u32) -> Vec3) -> (Vec3, Vec3) {
+    let (mut sum, mut sum_sq) = (Vec3::ZERO, Vec3::ZERO);
+    for k in 0..n {
+        let v = sample(k);
+        sum += v;
+        sum_sq += v * v;
+    }
+    let mean = sum / n as f32;
+    let error = ((sum_sq / n as f32 - mean * mean).max(Vec3::ZERO) / n as f32).powf(0.5);
+    (mean, error)
+}

@@ -5,7 +5,7 @@
 
 mod common;
 
-use common::ground_plane;
+use common::{ground_plane, mean_and_error};
 use glam::{Affine3A, Vec3, Vec3A};
 use sylva_engine::bvh::{BuildParams, TraversalStats};
 use sylva_engine::light::{DirectionalLight, LightSet, SkyLight};
@@ -139,15 +139,9 @@ fn under_a_uniform_sky_reflected_plus_transmitted_light_is_r_plus_t_times_the_sk
             lights: &lights,
             opacity: &OpacityMaps::default(),
         };
-        let n = 4000;
-        let (mut sum, mut sum_sq) = (Vec3::ZERO, Vec3::ZERO);
-        for k in 0..n {
-            let v = seen_from_above(&scene, 4, &SampleKey::new(3, 0, 0, k, 0));
-            sum += v;
-            sum_sq += v * v;
-        }
-        let mean = sum / n as f32;
-        let error = ((sum_sq / n as f32 - mean * mean).max(Vec3::ZERO) / n as f32).powf(0.5);
+        let (mean, error) = mean_and_error(4000, |k| {
+            seen_from_above(&scene, 4, &SampleKey::new(3, 0, 0, k, 0))
+        });
         assert!(
             ((mean - expected).abs() - 4.0 * error).max_element() <= 2e-4,
             "{transmission:?}: {mean} ± {error} against {expected}"
