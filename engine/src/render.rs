@@ -10,6 +10,7 @@
 use crate::bvh::TraversalStats;
 use crate::bvh::simd::{NodeKernel, with_node_kernel};
 use crate::camera::{Camera, CameraView};
+use crate::environment::luminance;
 use crate::film::{FrameBuffer, Tile, TileResult};
 use crate::geometry::GeometryLibrary;
 use crate::interleave::{LightSubsets, stratified_selection};
@@ -237,7 +238,10 @@ impl Material {
         if !self.is_translucent() {
             return 1.0;
         }
-        let (r, t) = (luminance(self.reflectance), luminance(self.transmittance));
+        let (r, t) = (
+            luminance(self.reflectance.into()),
+            luminance(self.transmittance.into()),
+        );
         if r + t > 0.0 { r / (r + t) } else { 0.5 }
     }
 }
@@ -270,12 +274,6 @@ fn sided_direction(
     };
     let d = t * local.x + b * local.y + normal * local.z;
     (outward.dot(d) > 0.0).then_some((d, side, share, outward))
-}
-
-/// Rec. 709 luminance.
-#[inline]
-fn luminance(c: Vec3A) -> f32 {
-    0.2126 * c.x + 0.7152 * c.y + 0.0722 * c.z
 }
 
 /// First random dimension used by sky sampling (0–1 pixel jitter, 2–3 lens).
