@@ -4,7 +4,7 @@
 
 mod common;
 
-use common::{ground_plane, mean_and_error};
+use common::{assert_within_four_sigma, ground_plane, mean_and_error};
 use glam::{Affine3A, Vec3, Vec3A};
 use sylva_engine::bvh::{BuildParams, TraversalStats};
 use sylva_engine::geometry::{Geometry, GeometryLibrary};
@@ -109,12 +109,8 @@ fn a_closed_glowing_box_gives_the_geometric_series_of_its_reflectance() {
     assert!((one - EMITTED * 1.5).abs().max_element() < 1e-5, "{one}");
     assert!(error.max_element() < 1e-5);
     // Four bounces with Russian roulette from the second on: unbiased, within 4 σ.
-    let (four, error) = seen_inside(glowing(0.5, None), 4, 20_000);
-    let expected = EMITTED * series(0.5, 4);
-    assert!(
-        ((four - expected).abs() - 4.0 * error).max_element() <= 1e-3,
-        "{four} ± {error} against {expected}"
-    );
+    let four = seen_inside(glowing(0.5, None), 4, 20_000);
+    assert_within_four_sigma(four, EMITTED * series(0.5, 4), 1e-3, "four bounces");
 }
 
 #[test]
@@ -122,12 +118,8 @@ fn light_transmitted_out_of_a_closed_box_is_lost_and_what_is_reflected_stays() {
     // Walls reflecting 0.3 and transmitting 0.5 (factor 0.5 of tint 1, base 0.6): one
     // bounce sees E (1 + 0.3) on average, whichever side each sample picks.
     let shader = glowing(0.6, Some(Transmission::new(0.5, Vec3::ONE)));
-    let (mean, error) = seen_inside(shader, 1, 20_000);
-    let expected = EMITTED * series(0.3, 1);
-    assert!(
-        ((mean - expected).abs() - 4.0 * error).max_element() <= 1e-3,
-        "{mean} ± {error} against {expected}"
-    );
+    let estimate = seen_inside(shader, 1, 20_000);
+    assert_within_four_sigma(estimate, EMITTED * series(0.3, 1), 1e-3, "one bounce");
 }
 
 #[test]
@@ -157,14 +149,11 @@ fn an_open_sheet_under_a_uniform_sky_gains_nothing_from_bounces() {
         ..SampleShading::plain(4)
     };
     let ray = Ray::new(Vec3A::new(0.0, 10.0, 0.0), Vec3A::NEG_Y);
-    let (mean, error) = mean_and_error(4000, |k| {
+    let estimate = mean_and_error(4000, |k| {
         let key = SampleKey::new(4, 0, 0, k, 0);
         Vec3::from(scene.radiance(&ray, &key, &shading, &mut TraversalStats::default()))
     });
-    assert!(
-        ((mean - sky).abs() - 4.0 * error).max_element() <= 2e-4,
-        "{mean} ± {error} against {sky}"
-    );
+    assert_within_four_sigma(estimate, sky, 2e-4, "three bounces");
 }
 
 /// A `size`-wide square at height `y` facing up, shader `shader`.
@@ -235,7 +224,7 @@ fn ground_under_a_translucent_canopy_gets_the_sky_through_it_bounce_by_bounce() 
             ..SampleShading::plain(2)
         };
         let ray = Ray::new(Vec3A::new(0.0, 0.5, 0.0), Vec3A::new(0.2, -1.0, 0.1));
-        let (mean, error) = mean_and_error(20_000, |k| {
+        let estimate = mean_and_error(20_000, |k| {
             let key = SampleKey::new(6, 0, 0, k, 0);
             Vec3::from(scene.radiance(&ray, &key, &shading, &mut TraversalStats::default()))
         });
@@ -244,9 +233,6 @@ fn ground_under_a_translucent_canopy_gets_the_sky_through_it_bounce_by_bounce() 
         } else {
             g * t * sky * series(g * c, bounces.div_ceil(2) - 1)
         };
-        assert!(
-            ((mean - expected).abs() - 4.0 * error).max_element() <= 1e-3,
-            "{bounces} bounces: {mean} ± {error} against {expected}"
-        );
+        assert_within_four_sigma(estimate, expected, 1e-3, &format!("{bounces} bounces"));
     }
 }

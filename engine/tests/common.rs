@@ -233,3 +233,17 @@ pub fn mean_and_error(n: u32, mut sample: impl FnMut(u32) -> Vec3) -> (Vec3, Vec
     let error = ((sum_sq / n as f32 - mean * mean).max(Vec3::ZERO) / n as f32).powf(0.5);
     (mean, error)
 }
+
+/// Asserts that an estimate `(mean, error)` agrees with `expected` within four standard
+/// errors plus `slack` (per channel); `what` names the case in the failure message.
+pub fn assert_within_four_sigma(
+    (mean, error): (Vec3, Vec3),
+    expected: Vec3,
+    slack: f32,
+    what: &str,
+) {
+    assert!(
+        ((mean - expected).abs() - 4.0 * error).max_element() <= slack,
+        "{what}: {mean} ± {error} against {expected}"
+    );
+}
