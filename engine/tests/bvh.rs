@@ -610,3 +610,43 @@ fn block_aligned_leaves_start_at_multiples_and_pad_only_their_ends() {
         "a wide leaf owning padding"
     );
 }
+
+#[test]
+fn clustered_top_level_trees_give_every_primitive_a_lane_and_stay_as_good() {
+    let mut rng = TestRng::new(17);
+    let bounds = bounds_of(&random_mesh(&mut rng, 3000, 20.0, 0.5));
+    let unclustered = BuildParams {
+        lane_cluster: 1,
+        ..BuildParams::TOP_LEVEL
+    };
+    let (clustered, plain) = (
+        Bvh::build(&bounds, BuildParams::TOP_LEVEL),
+        Bvh::build(&bounds, unclustered),
+    );
+    clustered.validate(&bounds).unwrap();
+    let leaf_lanes = |bvh: &Bvh| {
+        bvh.wide
+            .iter()
+            .flat_map(|n| (0..WIDTH).filter(|&l| n.counts[l] > 0).map(|l| n.counts[l]))
+            .collect::<Vec<u32>>()
+    };
+    assert!(leaf_lanes(&clustered).iter().all(|&c| c == 1));
+    assert_eq!(leaf_lanes(&clustered).len(), 3000);
+    // The binary tree stopped splitting at clusters of up to eight.
+    let largest = clustered.nodes.iter().map(|n| n.count()).max().unwrap();
+    assert!((2..=8).contains(&largest), "largest binary leaf {largest}");
+    // The wide trees cost rays about the same: the surface-area cost of their nodes.
+    let node_cost = |bvh: &Bvh| {
+        bvh.wide
+            .iter()
+            .flat_map(|n| {
+                (0..WIDTH)
+                    .filter(|&l| n.is_used(l) && n.counts[l] == 0)
+                    .map(|l| n.child_bounds(l))
+            })
+            .map(|b| f64::from(b.surface_area()))
+            .sum::<f64>()
+    };
+    let ratio = node_cost(&clustered) / node_cost(&plain);
+    assert!((0.9..1.1).contains(&ratio), "node cost ratio {ratio}");
+}

@@ -96,16 +96,26 @@ impl WideNode {
 /// Collapses a binary BVH into a wide one: each wide node takes the children of a
 /// binary node and keeps opening its largest interior child until it has [`WIDTH`].
 ///
+/// With `clusters` (the box of each leaf slot), a binary leaf of several primitives is
+/// a cluster: opened like an interior node when the wide node has a lane left for each
+/// of its primitives, it gives each of them a one-slot leaf lane of its own; left
+/// closed, it becomes a wide node of such lanes. Without, leaves stay leaves.
+///
 /// The top [`PARALLEL_LEVELS`] wide levels are made first; the subtrees below them are
 /// collapsed on the rayon pool and appended in a fixed order, so the result does not
 /// depend on the thread count, and the result is written once, in place.
 /// The result replaces what `wide` held, in its memory.
-pub fn collapse_into(binary: &[BvhNode], wide: &mut Vec<WideNode>) {
+pub fn collapse_into(
+    binary: &[BvhNode],
+    wide: &mut Vec<WideNode>,
+    clusters: Option<&(dyn Fn(u32) -> Aabb + Sync)>,
+) {
     wide.clear();
     let Some(root) = binary.first() else {
         return;
     };
-    if root.is_leaf() {
+    let collapse = Collapse { binary, clusters };
+    if !collapse.makes_node(Lane::Node(0)) {
         let mut node = WideNode::empty();
         node.set_box(0, root.bounds());
         node.children[0] = root.first();
@@ -115,12 +125,12 @@ pub fn collapse_into(binary: &[BvhNode], wide: &mut Vec<WideNode>) {
     }
     let mut top = Vec::new();
     let mut frontier = Vec::new();
-    collapse_top(binary, 0, PARALLEL_LEVELS, &mut top, &mut frontier);
+    collapse.top(0, PARALLEL_LEVELS, &mut top, &mut frontier);
     let pieces: Vec<Vec<WideNode>> = frontier
         .par_iter()
         .map(|lane| {
             let mut piece = Vec::new();
-            collapse_subtree(binary, lane.binary, &mut piece);
+            collapse.subtree(lane.binary, &mut piece);
             piece
         })
         .collect();
@@ -169,107 +179,266 @@ impl WideNode {
     }
 }
 
-/// The binary nodes that become the lanes of the wide node made from interior node
-/// `index`, in tree order.
-fn open_lanes(binary: &[BvhNode], index: usize) -> ([usize; WIDTH], usize) {
-    // Fixed arrays: a heap-allocated lane list per node cost more than the rest of the
-    // collapse together. Leaves get area −1 so they are never opened.
-    let area_of = |node: usize| {
-        let n = &binary[node];
-        if n.is_leaf() {
-            -1.0
-        } else {
-            n.bounds().surface_area()
+/// What a lane of a wide node under construction holds: a binary node, or one slot of
+/// an opened cluster.
+#[derive(Clone, Copy, Debug, PartialEq)]
+enum Lane {
+    Node(usize),
+    Slot(u32),
+}
+
+/// The binary tree being collapsed, with the slot boxes when leaves are clusters.
+#[derive(Clone, Copy)]
+struct Collapse<'a> {
+    binary: &'a [BvhNode],
+    clusters: Option<&'a (dyn Fn(u32) -> Aabb + Sync)>,
+}
+
+impl Collapse<'_> {
+    /// True when `lane` becomes a wide node of its own (unless opened into its parent):
+    /// an interior binary node, or a cluster.
+    fn makes_node(&self, lane: Lane) -> bool {
+        match lane {
+            Lane::Node(index) => {
+                let node = &self.binary[index];
+                !node.is_leaf() || (self.clusters.is_some() && node.count() > 1)
+            }
+            Lane::Slot(_) => false,
         }
-    };
-    let first = binary[index].first() as usize;
-    let mut lanes = [0; WIDTH];
-    let mut areas = [0.0f32; WIDTH];
-    lanes[0] = first;
-    lanes[1] = first + 1;
-    areas[0] = area_of(first);
-    areas[1] = area_of(first + 1);
-    let mut len = 2;
-    while len < WIDTH {
-        let mut widest: Option<(usize, f32)> = None;
-        for (position, &area) in areas[..len].iter().enumerate() {
-            if area >= 0.0 && widest.is_none_or(|(_, best)| area > best) {
-                widest = Some((position, area));
+    }
+
+    /// The area and the lanes it adds when `lane` is opened, or `None` when it cannot be
+    /// (a leaf, or a slot).
+    fn opening(&self, lane: Lane) -> Option<(f32, usize)> {
+        let Lane::Node(index) = lane else {
+            return None;
+        };
+        let node = &self.binary[index];
+        self.makes_node(lane).then(|| {
+            let added = if node.is_leaf() {
+                node.count() as usize - 1
+            } else {
+                1
+            };
+            (node.bounds().surface_area(), added)
+        })
+    }
+
+    /// Writes the lanes `lane` opens into (its two children, or a cluster's slots) at
+    /// `out`; returns how many.
+    fn open(&self, lane: Lane, out: &mut [Lane]) -> usize {
+        let Lane::Node(index) = lane else {
+            return 0;
+        };
+        let node = &self.binary[index];
+        let first = node.first();
+        if node.is_leaf() {
+            let count = node.count() as usize;
+            for (offset, slot) in out[..count].iter_mut().enumerate() {
+                *slot = Lane::Slot(first + offset as u32);
+            }
+            count
+        } else {
+            out[0] = Lane::Node(first as usize);
+            out[1] = Lane::Node(first as usize + 1);
+            2
+        }
+    }
+
+    /// The lanes of the wide node made from binary node `index` (interior, or a
+    /// cluster), in tree order.
+    fn lanes(&self, index: usize) -> ([Lane; WIDTH], usize) {
+        // Fixed arrays: a heap-allocated lane list per node cost more than the rest of
+        // the collapse together.
+        let mut lanes = [Lane::Slot(0); WIDTH];
+        let mut openings = [None; WIDTH];
+        let mut len = self.open(Lane::Node(index), &mut lanes);
+        for position in 0..len {
+            openings[position] = self.opening(lanes[position]);
+        }
+        while len < WIDTH {
+            let mut widest: Option<(usize, f32)> = None;
+            for (position, opening) in openings[..len].iter().enumerate() {
+                if let Some((area, added)) = *opening
+                    && len + added <= WIDTH
+                    && widest.is_none_or(|(_, best)| area > best)
+                {
+                    widest = Some((position, area));
+                }
+            }
+            let Some((position, _)) = widest else {
+                break;
+            };
+            // The opened node's lanes take its place, in order.
+            let mut opened = [Lane::Slot(0); WIDTH];
+            let count = self.open(lanes[position], &mut opened);
+            lanes.copy_within(position + 1..len, position + count);
+            openings.copy_within(position + 1..len, position + count);
+            for (offset, &lane) in opened[..count].iter().enumerate() {
+                lanes[position + offset] = lane;
+                openings[position + offset] = self.opening(lane);
+            }
+            len += count - 1;
+        }
+        (lanes, len)
+    }
+
+    /// The wide node made from binary node `index`, with its leaf lanes filled in, and
+    /// its lanes.
+    fn wide_node(&self, index: usize) -> (WideNode, [Lane; WIDTH], usize) {
+        let (lanes, len) = self.lanes(index);
+        let mut node = WideNode::empty();
+        for (position, &lane) in lanes[..len].iter().enumerate() {
+            match lane {
+                Lane::Slot(slot) => {
+                    let bounds = self.clusters.map_or(Aabb::EMPTY, |boxes| boxes(slot));
+                    node.set_box(position, bounds);
+                    node.children[position] = slot;
+                    node.counts[position] = 1;
+                }
+                Lane::Node(child) => {
+                    let c = &self.binary[child];
+                    node.set_box(position, c.bounds());
+                    if !self.makes_node(lane) {
+                        node.children[position] = c.first();
+                        node.counts[position] = c.count();
+                    }
+                }
             }
         }
-        let Some((position, _)) = widest else {
-            break;
+        (node, lanes, len)
+    }
+
+    /// Makes the top `levels` wide levels under binary node `index` into `top`,
+    /// recording the lanes below them that make nodes in `frontier`; returns the node's
+    /// index.
+    fn top(
+        &self,
+        index: usize,
+        levels: usize,
+        top: &mut Vec<WideNode>,
+        frontier: &mut Vec<FrontierLane>,
+    ) -> u32 {
+        let (mut node, lanes, len) = self.wide_node(index);
+        let at = top.len();
+        top.push(node);
+        for (position, &lane) in lanes[..len].iter().enumerate() {
+            let Lane::Node(child) = lane else {
+                continue;
+            };
+            if !self.makes_node(lane) {
+                continue;
+            }
+            if levels > 1 {
+                node.children[position] = self.top(child, levels - 1, top, frontier);
+            } else {
+                frontier.push(FrontierLane {
+                    node: at,
+                    lane: position,
+                    binary: child,
+                });
+            }
+        }
+        top[at] = node;
+        at as u32
+    }
+
+    /// Appends the wide subtree of binary node `index` to `wide` (its root first, child
+    /// indices relative to the start of `wide`); returns the root's index.
+    fn subtree(&self, index: usize, wide: &mut Vec<WideNode>) -> u32 {
+        let (mut node, lanes, len) = self.wide_node(index);
+        let at = wide.len();
+        wide.push(node);
+        for (position, &lane) in lanes[..len].iter().enumerate() {
+            if let Lane::Node(child) = lane
+                && self.makes_node(lane)
+            {
+                node.children[position] = self.subtree(child, wide);
+            }
+        }
+        wide[at] = node;
+        at as u32
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// A unit box at `x`.
+    fn unit(x: f32) -> Aabb {
+        Aabb::new(Vec3A::new(x, 0.0, 0.0), Vec3A::new(x + 1.0, 1.0, 1.0))
+    }
+
+    /// The tree collapsed from a root over two clusters of `left` and `right` slots;
+    /// checks that each slot got a lane of its own, with its box.
+    fn two_clusters(left: u32, right: u32) -> Vec<WideNode> {
+        let slots: Vec<Aabb> = (0..left + right).map(|s| unit(s as f32 * 2.0)).collect();
+        let union = |range: std::ops::Range<u32>| {
+            range.fold(Aabb::EMPTY, |b, s| b.union(slots[s as usize]))
         };
-        let child = binary[lanes[position]].first() as usize;
-        // The opened node's two children take its place, in order.
-        lanes.copy_within(position + 1..len, position + 2);
-        areas.copy_within(position + 1..len, position + 2);
-        lanes[position] = child;
-        lanes[position + 1] = child + 1;
-        areas[position] = area_of(child);
-        areas[position + 1] = area_of(child + 1);
-        len += 1;
+        let binary = [
+            BvhNode::interior(union(0..left + right), 1),
+            BvhNode::leaf(union(0..left), 0, left),
+            BvhNode::leaf(union(left..left + right), left, right),
+        ];
+        let mut wide = Vec::new();
+        collapse_into(&binary, &mut wide, Some(&|slot: u32| slots[slot as usize]));
+        for node in &wide {
+            for lane in (0..WIDTH).filter(|&lane| node.is_used(lane) && node.counts[lane] > 0) {
+                assert_eq!(
+                    node.counts[lane], 1,
+                    "a cluster's slot has a lane of its own"
+                );
+                let slot = node.children[lane] as usize;
+                assert!(node.child_bounds(lane).contains(&slots[slot]));
+                let lane_box = node.child_bounds(lane);
+                assert!((lane_box.min - slots[slot].min).abs().max_element() < 1e-5);
+                assert!((lane_box.max - slots[slot].max).abs().max_element() < 1e-5);
+            }
+        }
+        wide
     }
-    (lanes, len)
-}
 
-/// The wide node made from interior binary node `index`, with its leaf lanes filled in
-/// and its interior lanes' binary nodes.
-fn wide_node(binary: &[BvhNode], index: usize) -> (WideNode, [usize; WIDTH], usize) {
-    let (lanes, len) = open_lanes(binary, index);
-    let mut node = WideNode::empty();
-    for (lane, &child) in lanes[..len].iter().enumerate() {
-        let c = &binary[child];
-        node.set_box(lane, c.bounds());
-        if c.is_leaf() {
-            node.children[lane] = c.first();
-            node.counts[lane] = c.count();
-        }
+    fn used_lanes(node: &WideNode) -> usize {
+        (0..WIDTH).filter(|&lane| node.is_used(lane)).count()
     }
-    (node, lanes, len)
-}
 
-/// Makes the top `levels` wide levels under interior binary node `index` into `top`,
-/// recording the interior lanes below them in `frontier`; returns the node's index.
-fn collapse_top(
-    binary: &[BvhNode],
-    index: usize,
-    levels: usize,
-    top: &mut Vec<WideNode>,
-    frontier: &mut Vec<FrontierLane>,
-) -> u32 {
-    let (mut node, lanes, len) = wide_node(binary, index);
-    let at = top.len();
-    top.push(node);
-    for lane in 0..len {
-        if binary[lanes[lane]].is_leaf() {
-            continue;
-        }
-        if levels > 1 {
-            node.children[lane] = collapse_top(binary, lanes[lane], levels - 1, top, frontier);
-        } else {
-            frontier.push(FrontierLane {
-                node: at,
-                lane,
-                binary: lanes[lane],
-            });
-        }
+    #[test]
+    fn clusters_that_fit_are_opened_into_their_parent() {
+        let wide = two_clusters(6, 2);
+        assert_eq!(wide.len(), 1);
+        assert_eq!(used_lanes(&wide[0]), 8);
+        let mut slots: Vec<u32> = wide[0].children.to_vec();
+        slots.sort_unstable();
+        assert_eq!(slots, (0..8).collect::<Vec<u32>>());
     }
-    top[at] = node;
-    at as u32
-}
 
-/// Appends the wide subtree of interior binary node `index` to `wide` (its root first,
-/// child indices relative to the start of `wide`); returns the root's index.
-fn collapse_subtree(binary: &[BvhNode], index: usize, wide: &mut Vec<WideNode>) -> u32 {
-    let (mut node, lanes, len) = wide_node(binary, index);
-    let at = wide.len();
-    wide.push(node);
-    for lane in 0..len {
-        if !binary[lanes[lane]].is_leaf() {
-            node.children[lane] = collapse_subtree(binary, lanes[lane], wide);
-        }
+    #[test]
+    fn a_cluster_without_room_becomes_a_node_of_its_own() {
+        // Opening either cluster of five takes four more lanes: one fits, not both.
+        let wide = two_clusters(5, 5);
+        assert_eq!(wide.len(), 2);
+        assert_eq!(used_lanes(&wide[0]), 6);
+        assert_eq!(used_lanes(&wide[1]), 5);
+        let interior: Vec<usize> = (0..WIDTH)
+            .filter(|&lane| wide[0].is_used(lane) && wide[0].counts[lane] == 0)
+            .collect();
+        assert_eq!(interior.len(), 1);
+        assert_eq!(wide[0].children[interior[0]], 1);
     }
-    wide[at] = node;
-    at as u32
+
+    #[test]
+    fn without_slot_boxes_a_leaf_stays_one_lane() {
+        let binary = [
+            BvhNode::interior(unit(0.0).union(unit(9.0)), 1),
+            BvhNode::leaf(unit(0.0), 0, 6),
+            BvhNode::leaf(unit(9.0), 6, 2),
+        ];
+        let mut wide = Vec::new();
+        collapse_into(&binary, &mut wide, None);
+        assert_eq!(wide.len(), 1);
+        assert_eq!(used_lanes(&wide[0]), 2);
+        assert_eq!(wide[0].counts[..2], [6, 2]);
+    }
 }
