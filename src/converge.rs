@@ -9,63 +9,41 @@ use std::io::Write;
 use std::path::Path;
 use std::time::{Duration, Instant};
 use sylva_engine::Camera;
-use sylva_engine::discontinuity::{DiscontinuityFilter, FilteredImage};
+use sylva_engine::discontinuity::FilteredImage;
 use sylva_engine::film::Film;
 use sylva_engine::interleave::LightInterleave;
 use sylva_engine::metrics::image_error;
-use sylva_engine::transparency::TransparencyCurve;
-use sylva_systems::{RenderPool, RenderSeed};
+use sylva_systems::{Quality, RenderPool, RenderSeed};
 
 /// One sampling setting under test.
 #[derive(Clone, Debug, PartialEq)]
 pub struct Setting {
     /// Short name, used in the CSV and the plot legend.
     pub name: String,
-    /// Camera samples per pixel per frame.
-    pub samples_per_pixel: u32,
-    /// Light samples per hit.
-    pub light_samples: u32,
-    /// Adaptive transparency, off when `None`.
-    pub transparency: Option<TransparencyCurve>,
-    /// Interleaved light subsets (pattern 1 = independent picks).
-    pub interleave: LightInterleave,
+    /// How the camera samples and shows its frames.
+    pub quality: Quality,
     /// Worker threads (0 = one per core).
     pub threads: usize,
-    /// The display filter whose output is measured, if any (the film is measured
-    /// without it).
-    pub filter: Option<DiscontinuityFilter>,
-    /// Diffuse bounces of indirect light.
-    pub bounces: u32,
 }
 
 impl Setting {
-    /// The interactive preset: 1 camera sample, 1 light sample, adaptive transparency with
-    /// the default curve, interleave 4, every core.
-    pub fn interactive() -> Self {
+    /// `quality` on every core, named `name`.
+    pub fn new(name: &str, quality: Quality) -> Self {
         Self {
-            name: "interactive".into(),
-            samples_per_pixel: 1,
-            light_samples: 1,
-            transparency: Some(TransparencyCurve::default()),
-            interleave: LightInterleave::default(),
+            name: name.into(),
+            quality,
             threads: 0,
-            filter: Some(DiscontinuityFilter::for_pattern(
-                LightInterleave::default().pattern,
-            )),
-            bounces: 0,
         }
     }
 
-    /// The still preset: 4 camera samples, 4 light samples, exact transparency.
+    /// The interactive preset ([`Quality::interactive`]) on every core.
+    pub fn interactive() -> Self {
+        Self::new("interactive", Quality::interactive())
+    }
+
+    /// The still preset ([`Quality::still`]) on every core.
     pub fn still() -> Self {
-        Self {
-            name: "still".into(),
-            samples_per_pixel: 4,
-            light_samples: 4,
-            transparency: None,
-            filter: None,
-            ..Self::interactive()
-        }
+        Self::new("still", Quality::still())
     }
 
     /// The comparisons `sylva converge` runs by default: the interactive preset with and
@@ -73,33 +51,36 @@ impl Setting {
     /// unfiltered), adaptive transparency on vs off, interactive vs still, and the
     /// interactive preset on 1 thread.
     pub fn standard() -> Vec<Setting> {
-        let exact = Setting {
-            name: "interactive-exact".into(),
+        let interactive = Quality::interactive();
+        let exact = Quality {
             transparency: None,
             filter: None,
-            ..Self::interactive()
+            ..interactive
         };
         vec![
             Self::interactive(),
-            Setting {
-                name: "interactive-unfiltered".into(),
-                filter: None,
-                ..Self::interactive()
-            },
-            exact.clone(),
-            Setting {
-                name: "interactive-exact-random".into(),
-                interleave: LightInterleave {
-                    pattern: 1,
-                    subsets: 0,
+            Self::new(
+                "interactive-unfiltered",
+                Quality {
+                    filter: None,
+                    ..interactive
                 },
-                ..exact
-            },
+            ),
+            Self::new("interactive-exact", exact),
+            Self::new(
+                "interactive-exact-random",
+                Quality {
+                    interleave: LightInterleave {
+                        pattern: 1,
+                        subsets: 0,
+                    },
+                    ..exact
+                },
+            ),
             Self::still(),
             Setting {
-                name: "interactive-1-thread".into(),
                 threads: 1,
-                ..Self::interactive()
+                ..Self::new("interactive-1-thread", interactive)
             },
         ]
     }
@@ -109,38 +90,25 @@ impl Setting {
     /// one bounce too, so the direct-light settings show the light they leave out).
     pub fn available() -> Vec<Setting> {
         let mut all = Self::standard();
-        all.push(Setting {
-            name: "bounces1".into(),
-            bounces: 1,
-            ..Self::still()
-        });
+        all.push(Self::new(
+            "bounces1",
+            Quality {
+                bounces: 1,
+                ..Quality::still()
+            },
+        ));
         all
     }
 
-    /// Puts this setting on `camera` (which restarts its accumulation) and sizes the
-    /// render pool.
+    /// Puts this setting's quality on `camera` (which restarts its accumulation) and
+    /// sizes the render pool.
     pub fn apply(
         &self,
         world: &mut World,
         camera: Entity,
     ) -> Result<(), rayon::ThreadPoolBuildError> {
         world.insert_resource(RenderPool::new(self.threads)?);
-        let mut entity = world.entity_mut(camera);
-        if let Some(mut c) = entity.get_mut::<Camera>() {
-            c.samples_per_pixel = self.samples_per_pixel;
-            c.sky_samples = self.light_samples;
-            c.bounces = self.bounces;
-        }
-        entity.insert(self.interleave);
-        match self.transparency {
-            Some(curve) => entity.insert(curve),
-            None => entity.remove::<TransparencyCurve>(),
-        };
-        entity.remove::<FilteredImage>();
-        match self.filter {
-            Some(filter) => entity.insert(filter),
-            None => entity.remove::<DiscontinuityFilter>(),
-        };
+        self.quality.apply(world, camera);
         Ok(())
     }
 }

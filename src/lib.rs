@@ -38,7 +38,7 @@ pub mod prelude {
     };
     pub use sylva_scenes::{SceneBuild, build_scene, move_plant, plant_at, spawn};
     pub use sylva_systems::{
-        Frame, ImageOutput, OutputLog, RenderPool, RenderSeed, RenderStats, RenderSystems,
-        TileProgress, TopLevelState, frame_schedule, init_render_world,
+        Fingerprint, Frame, ImageOutput, OutputLog, Quality, RenderPool, RenderSeed, RenderStats,
+        RenderSystems, TileProgress, TopLevelState, frame_schedule, init_render_world,
     };
 }

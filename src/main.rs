@@ -457,12 +457,10 @@ fn image_metadata(
     args: &RenderArgs,
     film: &Film,
     width: u32,
-    spp: u32,
-    light_samples: u32,
-    transparency: Option<TransparencyCurve>,
-    interleave: LightInterleave,
+    quality: &Quality,
 ) -> Vec<(String, String)> {
-    let curve = transparency.map_or("off".to_string(), |c| {
+    let (spp, interleave) = (quality.samples_per_pixel, quality.interleave);
+    let curve = quality.transparency.map_or("off".to_string(), |c| {
         format!(
             "{},{},{},{},{}",
             c.near, c.far, c.depth_near, c.depth_far, c.weight
@@ -479,15 +477,13 @@ fn image_metadata(
             (u64::from(film.frames()) * u64::from(spp)).to_string(),
         ),
         ("sylva.spp_per_frame", spp.to_string()),
-        ("sylva.light_samples", light_samples.to_string()),
+        ("sylva.light_samples", quality.light_samples.to_string()),
         ("sylva.adaptive_transparency", curve),
         (
             "sylva.filter",
-            if display_filter(args) == Switch::On {
-                format!("discontinuity {0}x{0}", args.interleave)
-            } else {
-                "off".to_string()
-            },
+            quality.filter.map_or("off".to_string(), |f| {
+                format!("discontinuity {0}x{0}", f.window)
+            }),
         ),
         (
             "sylva.interleave",
@@ -517,44 +513,56 @@ fn image_metadata(
     .collect()
 }
 
-/// Identifies everything a checkpoint's pixels depend on.
-/// Whether the written image goes through the discontinuity filter.
-fn display_filter(args: &RenderArgs) -> Switch {
-    args.filter.unwrap_or(match args.preset {
-        Some(Preset::Interactive) => Switch::On,
-        _ => Switch::Off,
-    })
+/// The quality `render` asks for: the preset's, with the flags that override it.
+fn quality(args: &RenderArgs) -> Quality {
+    let preset = match args.preset {
+        Some(Preset::Interactive) => Quality::interactive(),
+        Some(Preset::Still) => Quality::still(),
+        None => Quality::default(),
+    };
+    let on =
+        |switch: Option<Switch>, preset_on: bool| switch.map_or(preset_on, |s| s == Switch::On);
+    Quality {
+        samples_per_pixel: args.spp.unwrap_or(preset.samples_per_pixel),
+        light_samples: args.sky_samples.unwrap_or(preset.light_samples),
+        bounces: args.bounces,
+        transparency: on(args.adaptive_transparency, preset.transparency.is_some())
+            .then_some(args.transparency_curve),
+        interleave: LightInterleave {
+            pattern: args.interleave,
+            subsets: args.subsets.unwrap_or(0),
+        },
+        filter: on(args.filter, preset.filter.is_some())
+            .then(|| DiscontinuityFilter::for_pattern(args.interleave)),
+    }
 }
 
-fn checkpoint_fingerprint(
-    args: &RenderArgs,
-    width: u32,
-    spp: u32,
-    samples: u32,
-    transparency: Option<TransparencyCurve>,
-    interleave: LightInterleave,
-) -> u64 {
-    let text = format!(
-        "{}|{}|{}x{}|{}|{}|{:?}|{}|{:?}|{:?}",
-        scene_label(&args.scene),
-        args.scene.seed,
-        width,
-        args.height,
-        spp,
-        samples,
-        args.env,
-        args.lights,
-        transparency,
-        interleave
-    );
-    fnv1a(&text)
+/// Adds what a scene's pixels depend on (which scene, camera, seed and translucency)
+/// to `hash`.
+fn hash_scene(hash: &mut Fingerprint, args: &SceneArgs) {
+    hash.text(&scene_label(args))
+        .text(args.camera.as_deref().unwrap_or(""))
+        .u64(args.seed)
+        .u32(u32::from(args.translucency == Switch::On));
 }
 
-/// FNV-1a hash of a settings description.
-fn fnv1a(text: &str) -> u64 {
-    text.bytes().fold(0xcbf2_9ce4_8422_2325u64, |h, b| {
-        (h ^ b as u64).wrapping_mul(0x1000_0000_01b3)
-    })
+/// Identifies everything a checkpoint's pixels depend on: the scene, the image size,
+/// the environment and the quality (not the exposure or the display filter, which only
+/// change the written image).
+fn checkpoint_fingerprint(args: &RenderArgs, width: u32, quality: &Quality) -> u64 {
+    let mut hash = Fingerprint::new("sylva checkpoint v2");
+    hash_scene(&mut hash, &args.scene);
+    hash.u32(width)
+        .u32(args.height)
+        .text(
+            &args
+                .env
+                .as_ref()
+                .map_or(String::new(), |p| p.display().to_string()),
+        )
+        .u32(args.lights)
+        .u64(quality.fingerprint());
+    hash.finish()
 }
 
 /// `out.png` → `out.f000016.png`.
@@ -586,27 +594,9 @@ fn render(args: RenderArgs) -> Result<()> {
     let width = args
         .width
         .unwrap_or_else(|| ((args.height as f32 * aspect).round() as u32).clamp(1, 16384));
-    let (preset_spp, preset_samples) = match args.preset {
-        Some(Preset::Interactive) => (1, 1),
-        Some(Preset::Still) => (4, 4),
-        None => (4, 2),
-    };
-    let spp = args.spp.unwrap_or(preset_spp);
-    let samples = args.sky_samples.unwrap_or(preset_samples);
-    let adaptive = args.adaptive_transparency.unwrap_or(match args.preset {
-        Some(Preset::Interactive) => Switch::On,
-        _ => Switch::Off,
-    });
-    let transparency = (adaptive == Switch::On).then_some(args.transparency_curve);
-    let interleave = LightInterleave {
-        pattern: args.interleave,
-        subsets: args.subsets.unwrap_or(0),
-    };
+    let quality = quality(&args);
     scene.camera.width = width;
     scene.camera.height = args.height;
-    scene.camera.samples_per_pixel = spp;
-    scene.camera.sky_samples = samples;
-    scene.camera.bounces = args.bounces;
     scene.camera.exposure = args.exposure;
     let stats = scene.stats();
     let (generate_time, blas_time) = (scene.generate_time, scene.blas_time);
@@ -614,15 +604,9 @@ fn render(args: RenderArgs) -> Result<()> {
     if let Some(environment) = environment {
         world.spawn(environment);
     }
-    let mut camera = world.entity_mut(spawned.camera);
-    camera.insert(interleave);
-    if let Some(curve) = transparency {
-        camera.insert(curve);
-    }
-    if display_filter(&args) == Switch::On {
-        camera.insert(DiscontinuityFilter::for_pattern(args.interleave));
-    }
-    let fingerprint = checkpoint_fingerprint(&args, width, spp, samples, transparency, interleave);
+    quality.apply(&mut world, spawned.camera);
+    let spp = quality.samples_per_pixel;
+    let fingerprint = checkpoint_fingerprint(&args, width, &quality);
     if let Some(path) = &args.resume {
         let film = Film::read_checkpoint(path, fingerprint)?;
         world.entity_mut(spawned.camera).insert(film);
@@ -683,8 +667,7 @@ fn render(args: RenderArgs) -> Result<()> {
             let film = world
                 .get::<Film>(spawned.camera)
                 .expect("cameras have films");
-            let metadata =
-                image_metadata(&args, film, width, spp, samples, transparency, interleave);
+            let metadata = image_metadata(&args, film, width, &quality);
             shown_film(film, world.get::<FilteredImage>(spawned.camera)).write_with(
                 &snapshot_path(&args.out, frames),
                 args.exposure,
@@ -705,7 +688,7 @@ fn render(args: RenderArgs) -> Result<()> {
     let film = world
         .get::<Film>(spawned.camera)
         .ok_or_else(|| anyhow::anyhow!("the camera has no film"))?;
-    let metadata = image_metadata(&args, film, width, spp, samples, transparency, interleave);
+    let metadata = image_metadata(&args, film, width, &quality);
     shown_film(film, world.get::<FilteredImage>(spawned.camera)).write_with(
         &args.out,
         args.exposure,

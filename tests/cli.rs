@@ -436,6 +436,8 @@ fn resuming_a_checkpoint_equals_one_uninterrupted_run_for_any_thread_count() {
         ["--spp", "2", "--interleave", "4"],
         ["--spp", "1", "--adaptive-transparency", "on"],
         ["--spp", "1", "--interleave", "2"],
+        ["--spp", "1", "--bounces", "1"],
+        ["--spp", "1", "--translucency", "off"],
     ] {
         let mut args = vec![
             "render",
@@ -457,6 +459,22 @@ fn resuming_a_checkpoint_equals_one_uninterrupted_run_for_any_thread_count() {
             "{other:?}: {stderr}"
         );
     }
+    // What only changes the written image may differ.
+    let shown = render_exr(
+        &dir,
+        "shown.exr",
+        &[
+            "--frames",
+            "3",
+            "--exposure",
+            "1",
+            "--filter",
+            "on",
+            "--resume",
+            checkpoint.to_str().unwrap(),
+        ],
+    );
+    assert!(shown != half, "the resumed run added a frame");
 }
 
 #[test]

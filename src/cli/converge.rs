@@ -2,7 +2,7 @@
 //! output directory), one progressive run per setting, then the CSV, the plot and the
 //! table.
 
-use crate::{ConvergeArgs, build_lit, fnv1a, init_tracing, scene_label};
+use crate::{ConvergeArgs, build_lit, hash_scene, init_tracing, scene_label};
 use anyhow::{Context, Result};
 use indicatif::{ProgressBar, ProgressStyle};
 use std::fmt::Write as _;
@@ -10,7 +10,9 @@ use sylva::converge::{
     ErrorSample, Setting, film_pixels, measure, render_reference, summarize, write_csv,
 };
 use sylva::plot::plot_error_vs_time;
-use sylva::prelude::{Entity, Film, RenderSeed, Schedule, Vec3, World, frame_schedule, spawn};
+use sylva::prelude::{
+    Entity, Film, Fingerprint, Quality, RenderSeed, Schedule, Vec3, World, frame_schedule, spawn,
+};
 
 /// The reference's sampler seed differs from the runs' so their noise is independent.
 const REFERENCE_SEED_OFFSET: u64 = 0x5eed_0f4e_f500;
@@ -35,7 +37,11 @@ pub fn run(args: ConvergeArgs) -> Result<()> {
     let camera = spawned.camera;
     let mut schedule = frame_schedule();
 
-    let bounces = settings.iter().map(|s| s.bounces).max().unwrap_or(0);
+    let bounces = settings
+        .iter()
+        .map(|s| s.quality.bounces)
+        .max()
+        .unwrap_or(0);
     let reference = reference(&args, bounces, &mut world, &mut schedule, camera)?;
     let mut runs: Vec<(Setting, Vec<ErrorSample>)> = Vec::new();
     for setting in settings {
@@ -126,19 +132,25 @@ fn reference(
     schedule: &mut Schedule,
     camera: Entity,
 ) -> Result<Vec<Vec3>> {
-    let key = fnv1a(&format!(
-        "reference|{}|{}|{}x{}|{}|{:?}|{}|{}|translucency {:?}|bounces {}",
-        scene_label(&args.scene),
-        args.scene.seed,
-        args.width,
-        args.height,
-        args.crop,
-        args.env,
-        args.lights,
-        args.reference_frames,
-        args.scene.translucency,
-        bounces
-    ));
+    let quality = Quality {
+        bounces,
+        ..Quality::still()
+    };
+    let mut hash = Fingerprint::new("sylva converge reference v2");
+    hash_scene(&mut hash, &args.scene);
+    hash.u32(args.width)
+        .u32(args.height)
+        .f32(args.crop)
+        .text(
+            &args
+                .env
+                .as_ref()
+                .map_or(String::new(), |p| p.display().to_string()),
+        )
+        .u32(args.lights)
+        .u32(args.reference_frames)
+        .u64(quality.fingerprint());
+    let key = hash.finish();
     let cache = args.out.join("reference.film");
     if let Ok(film) = Film::read_checkpoint(&cache, key) {
         if !args.quiet {
@@ -151,13 +163,9 @@ fn reference(
         }
         return Ok(film.mean_rgb().into_iter().map(Vec3::from).collect());
     }
-    Setting {
-        name: "reference".into(),
-        bounces,
-        ..Setting::still()
-    }
-    .apply(world, camera)
-    .map_err(|e| anyhow::anyhow!("could not start the worker threads: {e}"))?;
+    Setting::new("reference", quality)
+        .apply(world, camera)
+        .map_err(|e| anyhow::anyhow!("could not start the worker threads: {e}"))?;
     let bar = if args.quiet {
         ProgressBar::hidden()
     } else {

@@ -22,8 +22,10 @@
 //! bevy's task pool only runs the systems themselves, whose threads block while the pool
 //! works, so the cores are not oversubscribed.
 
+mod quality;
 mod systems;
 
+pub use quality::{Fingerprint, Quality};
 pub use systems::*;
 
 use bevy_ecs::prelude::*;
