@@ -7,13 +7,13 @@ use bevy_ecs::prelude::*;
 use glam::Vec3;
 use std::io::Write;
 use std::path::Path;
-use std::time::{Duration, Instant};
+use std::time::Duration;
 use sylva_engine::Camera;
 use sylva_engine::discontinuity::FilteredImage;
 use sylva_engine::film::Film;
 use sylva_engine::interleave::LightInterleave;
 use sylva_engine::metrics::image_error;
-use sylva_systems::{Quality, RenderPool, RenderSeed};
+use sylva_systems::{Flow, Quality, RenderPool, RenderSeed, StopAt, refine};
 
 /// One sampling setting under test.
 #[derive(Clone, Debug, PartialEq)]
@@ -157,10 +157,14 @@ pub fn render_reference(
     on_frame: &mut dyn FnMut(u32),
 ) -> Vec<Vec3> {
     world.insert_resource(RenderSeed(seed));
-    for frame in 1..=frames {
-        schedule.run(world);
-        on_frame(frame);
-    }
+    let stop = StopAt {
+        frames: Some(frames),
+        ..StopAt::default()
+    };
+    refine(world, schedule, camera, &stop, |_, progress| {
+        on_frame(progress.rendered);
+        Flow::Continue
+    });
     film_pixels(world, camera)
 }
 
@@ -181,25 +185,24 @@ pub fn measure(
             .map_or(1, |c| c.samples_per_pixel),
     );
     let mut samples = Vec::new();
-    let mut rendering = Duration::ZERO;
-    for frame in 1..=max_frames {
-        let start = Instant::now();
-        schedule.run(world);
-        rendering += start.elapsed();
+    let stop = StopAt {
+        frames: Some(max_frames),
+        budget: Some(budget),
+        interrupt: None,
+    };
+    refine(world, schedule, camera, &stop, |world, progress| {
         let error = image_error(reference, &shown_pixels(world, camera)).unwrap_or_default();
         let sample = ErrorSample {
-            frame,
-            time_s: rendering.as_secs_f64(),
-            spp: spp * u64::from(frame),
+            frame: progress.rendered,
+            time_s: progress.rendering.as_secs_f64(),
+            spp: spp * u64::from(progress.rendered),
             rmse: error.rmse,
             relmse: error.relmse,
         };
         on_frame(&sample);
         samples.push(sample);
-        if rendering >= budget {
-            break;
-        }
-    }
+        Flow::Continue
+    });
     samples
 }
 

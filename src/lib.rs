@@ -38,7 +38,8 @@ pub mod prelude {
     };
     pub use sylva_scenes::{SceneBuild, build_scene, move_plant, plant_at, spawn};
     pub use sylva_systems::{
-        Fingerprint, Frame, ImageOutput, OutputLog, Quality, RenderPool, RenderSeed, RenderStats,
-        RenderSystems, TileProgress, TopLevelState, frame_schedule, init_render_world,
+        Fingerprint, Flow, Frame, ImageOutput, OutputLog, Progress, Quality, RenderPool,
+        RenderSeed, RenderStats, RenderSystems, StopAt, Stopped, TileProgress, TopLevelState,
+        frame_schedule, init_render_world, refine,
     };
 }

@@ -645,42 +645,55 @@ fn render(args: RenderArgs) -> Result<()> {
     let start = Instant::now();
     let mut schedule = frame_schedule();
     let interrupted = interrupt_flag();
-    loop {
-        schedule.run(&mut world);
+    let stop = StopAt {
+        frames: if args.time.is_some() {
+            args.frames
+        } else {
+            Some(target_frames)
+        },
+        budget: args.time,
+        interrupt: Some(interrupted.clone()),
+    };
+    let mut snapshot_failure = None;
+    let (stopped, _) = refine(
+        &mut world,
+        &mut schedule,
+        spawned.camera,
+        &stop,
+        |world, progress| {
+            let frames = progress.frames;
+            if args.time.is_some() {
+                bar.set_message(format!(
+                    "{frames} frames, {} spp",
+                    u64::from(frames) * u64::from(spp)
+                ));
+            }
+            if let Some(every) = args.snapshot_every
+                && frames.is_multiple_of(every)
+            {
+                let film = world
+                    .get::<Film>(spawned.camera)
+                    .expect("cameras have films");
+                let metadata = image_metadata(&args, film, width, &quality);
+                let written = shown_film(film, world.get::<FilteredImage>(spawned.camera))
+                    .write_with(&snapshot_path(&args.out, frames), args.exposure, &metadata);
+                if let Err(error) = written {
+                    snapshot_failure = Some(error);
+                    return Flow::Stop;
+                }
+            }
+            Flow::Continue
+        },
+    );
+    if let Some(error) = snapshot_failure {
+        return Err(error.into());
+    }
+    if stopped == Stopped::Interrupted {
+        bar.finish_and_clear();
         let frames = world.get::<Film>(spawned.camera).map_or(0, Film::frames);
-        if interrupted.load(Ordering::SeqCst) {
-            bar.finish_and_clear();
-            eprintln!(
-                "interrupted: writing the {frames} frames accumulated so far (Ctrl-C again to quit without writing)"
-            );
-            break;
-        }
-        if args.time.is_some() {
-            bar.set_message(format!(
-                "{frames} frames, {} spp",
-                frames as u64 * spp as u64
-            ));
-        }
-        if let Some(every) = args.snapshot_every
-            && frames.is_multiple_of(every)
-        {
-            let film = world
-                .get::<Film>(spawned.camera)
-                .expect("cameras have films");
-            let metadata = image_metadata(&args, film, width, &quality);
-            shown_film(film, world.get::<FilteredImage>(spawned.camera)).write_with(
-                &snapshot_path(&args.out, frames),
-                args.exposure,
-                &metadata,
-            )?;
-        }
-        let done = match args.time {
-            Some(budget) => start.elapsed() >= budget || frames >= args.frames.unwrap_or(u32::MAX),
-            None => frames >= target_frames,
-        };
-        if done {
-            break;
-        }
+        eprintln!(
+            "interrupted: writing the {frames} frames accumulated so far (Ctrl-C again to quit without writing)"
+        );
     }
     let wall = start.elapsed();
     bar.finish_and_clear();

@@ -22,9 +22,11 @@
 //! bevy's task pool only runs the systems themselves, whose threads block while the pool
 //! works, so the cores are not oversubscribed.
 
+mod progressive;
 mod quality;
 mod systems;
 
+pub use progressive::{Flow, Progress, StopAt, Stopped, refine};
 pub use quality::{Fingerprint, Quality};
 pub use systems::*;
 

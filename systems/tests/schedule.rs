@@ -456,3 +456,121 @@ fn a_thousandfold_gust_stays_bounded_and_a_nan_wind_is_ignored() {
         "no wind, no energy gained"
     );
 }
+
+/// The film's mean pixels.
+fn pixels(w: &TestWorld) -> Vec<[f32; 3]> {
+    w.film().mean_rgb()
+}
+
+#[test]
+fn the_progressive_driver_stops_at_the_frame_count_and_matches_a_plain_loop() {
+    let mut plain = test_world(2);
+    for _ in 0..3 {
+        plain.run();
+    }
+    let mut w = test_world(1);
+    let mut seen = Vec::new();
+    let stop = StopAt {
+        frames: Some(3),
+        ..StopAt::default()
+    };
+    let (stopped, progress) = refine(&mut w.world, &mut w.schedule, w.camera, &stop, |_, p| {
+        seen.push((p.frames, p.rendered, p.restarted));
+        Flow::Continue
+    });
+    assert_eq!(stopped, Stopped::Frames);
+    assert_eq!(seen, [(1, 1, false), (2, 2, false), (3, 3, false)]);
+    assert_eq!(progress.frames, 3);
+    assert!(pixels(&w) == pixels(&plain), "the driver changed the image");
+    // A second run continues the film up to its new count; with no count and no
+    // budget, one frame.
+    let (_, progress) = refine(
+        &mut w.world,
+        &mut w.schedule,
+        w.camera,
+        &StopAt::default(),
+        |_, _| Flow::Continue,
+    );
+    assert_eq!((progress.frames, progress.rendered), (4, 1));
+}
+
+#[test]
+fn the_progressive_driver_stops_on_interrupt_budget_and_caller() {
+    let mut w = test_world(2);
+    let flag = Arc::new(std::sync::atomic::AtomicBool::new(false));
+    let stop = StopAt {
+        frames: Some(100),
+        interrupt: Some(flag.clone()),
+        ..StopAt::default()
+    };
+    let mut calls = 0;
+    let (stopped, progress) = refine(&mut w.world, &mut w.schedule, w.camera, &stop, |_, p| {
+        calls += 1;
+        if p.frames == 2 {
+            flag.store(true, std::sync::atomic::Ordering::SeqCst);
+        }
+        Flow::Continue
+    });
+    assert_eq!(stopped, Stopped::Interrupted);
+    assert_eq!(
+        (progress.frames, calls),
+        (3, 2),
+        "the interrupted frame is kept, not reported"
+    );
+
+    let stop = StopAt {
+        frames: Some(1000),
+        budget: Some(std::time::Duration::ZERO),
+        interrupt: None,
+    };
+    let (stopped, progress) = refine(&mut w.world, &mut w.schedule, w.camera, &stop, |_, _| {
+        Flow::Continue
+    });
+    assert_eq!((stopped, progress.rendered), (Stopped::Budget, 1));
+
+    let stop = StopAt {
+        frames: Some(1000),
+        ..StopAt::default()
+    };
+    let (stopped, progress) = refine(&mut w.world, &mut w.schedule, w.camera, &stop, |_, p| {
+        if p.rendered == 2 {
+            Flow::Stop
+        } else {
+            Flow::Continue
+        }
+    });
+    assert_eq!((stopped, progress.rendered), (Stopped::Caller, 2));
+}
+
+#[test]
+fn the_progressive_driver_reports_a_restart_when_the_camera_moves() {
+    let mut w = test_world(2);
+    let camera = w.camera;
+    let stop = StopAt {
+        frames: Some(5),
+        ..StopAt::default()
+    };
+    let mut seen = Vec::new();
+    let (stopped, progress) = refine(&mut w.world, &mut w.schedule, camera, &stop, |world, p| {
+        seen.push((p.frames, p.restarted));
+        if p.rendered == 3 {
+            world.get_mut::<Transform>(camera).unwrap().translation.x += 0.5;
+        }
+        Flow::Continue
+    });
+    assert_eq!(stopped, Stopped::Frames);
+    assert_eq!(
+        seen,
+        [
+            (1, false),
+            (2, false),
+            (3, false),
+            (1, true),
+            (2, false),
+            (3, false),
+            (4, false),
+            (5, false)
+        ]
+    );
+    assert_eq!(progress.rendered, 8);
+}
