@@ -5,9 +5,9 @@
 //! counted. `cargo bench --bench frames [-- SCENE]`.
 
 use std::time::Instant;
-use sylva::converge::Setting;
 use sylva::prelude::*;
 use sylva::systems::RenderStats;
+use sylva::systems::converge::Setting;
 
 fn main() {
     let scene_name = std::env::args()

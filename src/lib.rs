@@ -17,9 +17,6 @@
 //! film.write_png("meadow.png".as_ref(), 0.0).unwrap();
 //! ```
 
-pub mod converge;
-pub mod plot;
-
 pub use sylva_engine as engine;
 pub use sylva_scenes as scenes;
 pub use sylva_systems as systems;

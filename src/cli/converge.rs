@@ -2,17 +2,69 @@
 //! output directory), one progressive run per setting, then the CSV, the plot and the
 //! table.
 
-use crate::{ConvergeArgs, build_lit, hash_scene, init_tracing, scene_label};
+use super::plot::plot_error_vs_time;
+use super::{SceneArgs, build_lit, hash_scene, init_tracing, parse_duration, scene_label};
 use anyhow::{Context, Result};
+use clap::Args;
 use indicatif::{ProgressBar, ProgressStyle};
 use std::fmt::Write as _;
-use sylva::converge::{
-    ErrorSample, Setting, film_pixels, measure, render_reference, summarize, write_csv,
-};
-use sylva::plot::plot_error_vs_time;
+use std::path::PathBuf;
+use std::time::Duration;
 use sylva::prelude::{
     Entity, Film, Fingerprint, Quality, RenderSeed, Schedule, Vec3, World, frame_schedule, spawn,
 };
+use sylva::systems::converge::{
+    ErrorSample, Setting, film_pixels, measure, render_reference, summarize, write_csv,
+};
+
+#[derive(Args, Debug)]
+pub(crate) struct ConvergeArgs {
+    #[command(flatten)]
+    scene: SceneArgs,
+    /// Image width in pixels.
+    #[arg(long, default_value_t = 320, allow_negative_numbers = true, value_parser = clap::value_parser!(u32).range(1..=16384))]
+    width: u32,
+    /// Image height in pixels.
+    #[arg(long, default_value_t = 240, allow_negative_numbers = true, value_parser = clap::value_parser!(u32).range(1..=16384))]
+    height: u32,
+    /// Render only the central FRACTION of the view (a crop, by narrowing the field of view).
+    #[arg(long, default_value_t = 1.0, value_name = "FRACTION", allow_negative_numbers = true, value_parser = parse_fraction)]
+    crop: f32,
+    /// Light with a latitude-longitude HDR map instead of the scene's sun and sky.
+    #[arg(long, value_name = "FILE")]
+    env: Option<PathBuf>,
+    /// Virtual lights the map is cut into.
+    #[arg(long, default_value_t = 1024, allow_negative_numbers = true, value_parser = clap::value_parser!(u32).range(1..=65536))]
+    lights: u32,
+    /// Wall time each setting may refine for (e.g. 10s, 2m).
+    #[arg(long, default_value = "10s", allow_hyphen_values = true, value_parser = parse_duration)]
+    budget: Duration,
+    /// Most frames per setting.
+    #[arg(long, default_value_t = 100_000, allow_negative_numbers = true, value_parser = clap::value_parser!(u32).range(1..))]
+    max_frames: u32,
+    /// Frames of the reference: still preset (4 camera and 4 light samples), exact
+    /// transparency, a sampler seed of its own.
+    #[arg(long, default_value_t = 64, allow_negative_numbers = true, value_parser = clap::value_parser!(u32).range(1..))]
+    reference_frames: u32,
+    /// Settings to run, comma-separated [default: interactive, interactive-unfiltered,
+    /// interactive-exact, interactive-exact-random, still, interactive-1-thread].
+    #[arg(long, value_delimiter = ',', value_name = "NAMES")]
+    configs: Vec<String>,
+    /// Output directory (created if missing; holds the cached reference).
+    #[arg(long, short)]
+    out: PathBuf,
+    /// No progress output.
+    #[arg(long, short)]
+    quiet: bool,
+}
+
+/// Parses a fraction in (0, 1].
+fn parse_fraction(text: &str) -> Result<f32, String> {
+    match text.parse::<f32>() {
+        Ok(f) if f > 0.0 && f <= 1.0 => Ok(f),
+        _ => Err(format!("'{text}' must be a number in (0, 1]")),
+    }
+}
 
 /// The reference's sampler seed differs from the runs' so their noise is independent.
 const REFERENCE_SEED_OFFSET: u64 = 0x5eed_0f4e_f500;

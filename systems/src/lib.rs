@@ -22,6 +22,7 @@
 //! bevy's task pool only runs the systems themselves, whose threads block while the pool
 //! works, so the cores are not oversubscribed.
 
+pub mod converge;
 mod progressive;
 mod quality;
 mod systems;

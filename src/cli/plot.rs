@@ -1,10 +1,10 @@
 //! Log–log error-against-time plots as PNG: plotters on an in-memory bitmap, text in the
 //! embedded DejaVu Sans (no system font libraries), encoded with the image crate.
 
-use crate::converge::ErrorSample;
 use plotters::prelude::*;
 use std::path::Path;
 use std::sync::Once;
+use sylva::systems::converge::ErrorSample;
 
 /// Why a plot could not be written.
 #[derive(Debug, thiserror::Error)]

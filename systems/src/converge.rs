@@ -3,6 +3,7 @@
 //! reference after every frame, and the summary a user chooses settings by (time to reach
 //! a relMSE, fitted convergence slope).
 
+use crate::{Flow, Quality, RenderPool, RenderSeed, StopAt, refine};
 use bevy_ecs::prelude::*;
 use glam::Vec3;
 use std::io::Write;
@@ -13,7 +14,6 @@ use sylva_engine::discontinuity::FilteredImage;
 use sylva_engine::film::Film;
 use sylva_engine::interleave::LightInterleave;
 use sylva_engine::metrics::image_error;
-use sylva_systems::{Flow, Quality, RenderPool, RenderSeed, StopAt, refine};
 
 /// One sampling setting under test.
 #[derive(Clone, Debug, PartialEq)]

@@ -1,0 +1,93 @@
+//! `sylva info`: a scene's species, triangles, instances, memory and build times.
+
+use super::*;
+use std::time::Instant;
+
+/// Runs `sylva info`.
+pub(crate) fn run(args: SceneArgs) -> Result<()> {
+    let _guard = init_tracing(None);
+    let command_start = Instant::now();
+    let mut world = World::new();
+    let (scene, _) = build(&mut world, &args)?;
+    let stats = scene.stats();
+    let pool = world.resource::<RenderPool>().clone();
+    let descs = scene.instance_descs();
+    let start = Instant::now();
+    let tlas = pool.install(|| {
+        TopLevel::build(
+            &scene.library,
+            &descs,
+            sylva::systems::BuildSettings::default().top_level,
+        )
+    });
+    let tlas_time = start.elapsed();
+    let start = Instant::now();
+    let shaders = sylva::engine::ShaderTable::new(scene.shaders.clone());
+    let opacity = pool.install(|| sylva::engine::OpacityMaps::build(&scene.library, &shaders));
+    let opacity_time = start.elapsed();
+    let total_time = command_start.elapsed();
+    println!("scene            {} (seed {})", scene.name, args.seed);
+    println!("species          {}", stats.species);
+    for s in &scene.species {
+        let count = scene
+            .plants
+            .iter()
+            .filter(|p| p.geometry == s.geometry)
+            .count();
+        let tris = scene
+            .library
+            .get(s.geometry)
+            .map_or(0, |g| g.mesh.triangle_count());
+        println!(
+            "  {:<22} {:>9} triangles  {:>9} instances",
+            s.name,
+            group(tris as u64),
+            group(count as u64)
+        );
+    }
+    if let Some(t) = scene.terrain.and_then(|t| scene.library.get(t)) {
+        println!(
+            "terrain          {} triangles",
+            group(t.mesh.triangle_count() as u64)
+        );
+    }
+    println!("layers           {}", scene.layers.len());
+    for (i, name) in scene.layers.iter().enumerate() {
+        let count = scene.plants.iter().filter(|p| p.layer == i as u32).count();
+        println!("  {name:<22} {:>9} plants", group(count as u64));
+    }
+    println!("plants           {}", group(scene.plants.len() as u64));
+    println!("unique triangles {}", group(stats.unique_triangles as u64));
+    println!(
+        "instances        {} (plants{})",
+        group(stats.instances as u64),
+        if scene.terrain.is_some() {
+            " + terrain"
+        } else {
+            ""
+        }
+    );
+    println!("instanced tris   {}", group(stats.instanced_triangles));
+    println!(
+        "memory           {:.1} MB (geometry + BLAS {:.1} MB, TLAS {:.1} MB, opacity maps {:.1} MB)",
+        (scene.library.memory_bytes() + tlas.memory_bytes() + opacity.memory_bytes()) as f64 / 1e6,
+        scene.library.memory_bytes() as f64 / 1e6,
+        tlas.memory_bytes() as f64 / 1e6,
+        opacity.memory_bytes() as f64 / 1e6
+    );
+    println!(
+        "build times      generation {:.2} s, BLAS {:.2} s, TLAS {:.1} ms, opacity maps {:.1} ms ({} maps) ({} threads)",
+        scene.generate_time.as_secs_f64(),
+        scene.blas_time.as_secs_f64(),
+        tlas_time.as_secs_f64() * 1e3,
+        opacity_time.as_secs_f64() * 1e3,
+        group(opacity.map_count() as u64),
+        pool.threads()
+    );
+    println!(
+        "total            {:.2} s to generate and build everything, peak memory {}",
+        total_time.as_secs_f64(),
+        peak_memory_bytes().map_or("unknown".into(), |b| format!("{:.0} MB", b as f64 / 1e6))
+    );
+    Ok(())
+}

@@ -1,0 +1,255 @@
+//! What the subcommands share: the scene arguments and how a scene is built and lit,
+//! tracing, output-path checks, durations, Ctrl-C, number formatting.
+
+pub mod compare;
+pub mod converge;
+pub mod info;
+pub mod plot;
+pub mod render;
+
+use anyhow::{Result, bail};
+use clap::Args;
+use std::path::{Path, PathBuf};
+use std::sync::Arc;
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::time::Duration;
+use sylva::engine::film::ImageKind;
+use sylva::engine::tlas::TopLevel;
+use sylva::prelude::*;
+use sylva::scenes::SceneBuild;
+use tracing_subscriber::prelude::*;
+
+#[derive(Args, Debug)]
+pub(crate) struct SceneArgs {
+    /// Built-in scene (meadow, forest, paper) or a TOML scene file (*.toml).
+    #[arg(long, default_value = "meadow")]
+    scene: String,
+    /// Render or describe a glTF/GLB file instead of a scene.
+    #[arg(long, conflicts_with = "scene", value_name = "FILE")]
+    gltf: Option<PathBuf>,
+    /// With --gltf: the camera to look through, by name or index (default: the file's
+    /// first perspective camera, or a view framing the model).
+    #[arg(long, requires = "gltf", value_name = "NAME|INDEX")]
+    camera: Option<String>,
+    /// Seed of the scene's generation and of the sampler: same seed, same image.
+    #[arg(long, default_value_t = 0, allow_negative_numbers = true)]
+    seed: u64,
+    /// Worker threads for building and rendering (0 = one per core). The image does not
+    /// depend on it.
+    #[arg(long, default_value_t = 0, allow_negative_numbers = true, value_parser = clap::value_parser!(u16).range(0..=1024))]
+    threads: u16,
+    /// Leaf translucency: light from behind passes through thin leaves (the generated
+    /// grass and broadleaves, glTF's KHR_materials_diffuse_transmission). Off makes them
+    /// opaque with the same reflected light, and saves the shadow rays it costs.
+    #[arg(long, value_enum, value_name = "on|off", default_value = "on")]
+    translucency: Switch,
+}
+
+/// `on` or `off`.
+#[derive(clap::ValueEnum, Clone, Copy, Debug, PartialEq, Eq)]
+enum Switch {
+    /// Enabled.
+    On,
+    /// Disabled.
+    Off,
+}
+
+/// Logs warnings (or `RUST_LOG`) to stderr; with `trace`, every span to a Chrome trace.
+fn init_tracing(trace: Option<&Path>) -> Option<tracing_chrome::FlushGuard> {
+    let filter = tracing_subscriber::EnvFilter::try_from_default_env()
+        .unwrap_or_else(|_| tracing_subscriber::EnvFilter::new("warn"));
+    let fmt = tracing_subscriber::fmt::layer()
+        .with_writer(std::io::stderr)
+        .with_filter(filter);
+    match trace {
+        Some(path) => {
+            let (chrome, guard) = tracing_chrome::ChromeLayerBuilder::new()
+                .file(path)
+                .include_args(true)
+                .build();
+            tracing_subscriber::registry().with(fmt).with(chrome).init();
+            Some(guard)
+        }
+        None => {
+            tracing_subscriber::registry().with(fmt).init();
+            None
+        }
+    }
+}
+
+fn check_output_path(path: &Path) -> Result<()> {
+    ImageKind::from_path(path)?;
+    let dir = path
+        .parent()
+        .filter(|d| !d.as_os_str().is_empty())
+        .unwrap_or(Path::new("."));
+    if !dir.is_dir() {
+        bail!(
+            "{}: the directory {} does not exist",
+            path.display(),
+            dir.display()
+        );
+    }
+    Ok(())
+}
+
+/// A built scene and, for glTF files, the chosen camera's aspect ratio.
+fn build(world: &mut World, args: &SceneArgs) -> Result<(SceneBuild, Option<f32>)> {
+    init_render_world(world, args.threads as usize)
+        .map_err(|e| anyhow::anyhow!("could not start the worker threads: {e}"))?;
+    world.insert_resource(RenderSeed(args.seed));
+    let pool = world.resource::<RenderPool>().clone();
+    let (mut scene, aspect) = match &args.gltf {
+        Some(path) => import_gltf(&pool, path, args.camera.as_deref())?,
+        None => (pool.install(|| build_scene(&args.scene, args.seed))?, None),
+    };
+    if args.translucency == Switch::Off {
+        scene.without_translucency();
+    }
+    Ok((scene, aspect))
+}
+
+#[cfg(feature = "gltf")]
+fn import_gltf(
+    pool: &RenderPool,
+    path: &Path,
+    camera: Option<&str>,
+) -> Result<(SceneBuild, Option<f32>)> {
+    use sylva::scenes::gltf::{CameraChoice, import};
+    let imported = import(path)?;
+    let choice = camera.map_or(CameraChoice::First, CameraChoice::parse);
+    let aspect = imported.camera(&choice)?.and_then(|c| c.aspect_ratio);
+    let scene = pool.install(|| imported.into_scene(&choice))?;
+    Ok((scene, aspect))
+}
+
+#[cfg(not(feature = "gltf"))]
+fn import_gltf(
+    _pool: &RenderPool,
+    path: &Path,
+    _camera: Option<&str>,
+) -> Result<(SceneBuild, Option<f32>)> {
+    bail!(
+        "{}: reading glTF needs the 'gltf' cargo feature, which this build left out",
+        path.display()
+    )
+}
+
+/// Builds the scene and, with `env`, the environment light that replaces its sun and sky.
+fn build_lit(
+    world: &mut World,
+    args: &SceneArgs,
+    env: Option<&Path>,
+    lights: u32,
+) -> Result<(SceneBuild, Option<f32>, Option<EnvironmentLight>)> {
+    let environment = match env {
+        Some(path) => Some(EnvironmentLight::new(
+            load_linear_image(path)?,
+            lights as usize,
+        )),
+        None => None,
+    };
+    let (mut scene, aspect) = build(world, args)?;
+    if environment.is_some() {
+        // The map carries the sun and the sky: keeping the scene's would count them twice.
+        scene.sun = None;
+        scene.sky = None;
+        scene.environment = None;
+    }
+    Ok((scene, aspect, environment))
+}
+
+/// Name of what is being rendered, for messages.
+fn scene_label(args: &SceneArgs) -> String {
+    match &args.gltf {
+        Some(path) => path.display().to_string(),
+        None => args.scene.clone(),
+    }
+}
+
+/// Adds what a scene's pixels depend on (which scene, camera, seed and translucency)
+/// to `hash`.
+fn hash_scene(hash: &mut Fingerprint, args: &SceneArgs) {
+    hash.text(&scene_label(args))
+        .text(args.camera.as_deref().unwrap_or(""))
+        .u64(args.seed)
+        .u32(u32::from(args.translucency == Switch::On));
+}
+
+/// Peak resident memory of this process (Linux `VmHWM`), when known.
+fn peak_memory_bytes() -> Option<u64> {
+    let status = std::fs::read_to_string("/proc/self/status").ok()?;
+    let line = status.lines().find(|l| l.starts_with("VmHWM:"))?;
+    let kb: u64 = line.split_whitespace().nth(1)?.parse().ok()?;
+    Some(kb * 1024)
+}
+
+/// `5s`, `500ms`, `2m`, `1.5s` → a duration.
+fn parse_duration(text: &str) -> Result<Duration, String> {
+    let text = text.trim();
+    let (number, unit) = text
+        .find(|c: char| c.is_ascii_alphabetic())
+        .map_or((text, "s"), |i| text.split_at(i));
+    let value: f64 = number
+        .trim()
+        .parse()
+        .map_err(|_| format!("'{text}' is not a duration (examples: 5s, 500ms, 2m)"))?;
+    let seconds = match unit {
+        "ms" => value / 1e3,
+        "s" => value,
+        "m" | "min" => value * 60.0,
+        "h" => value * 3600.0,
+        _ => {
+            return Err(format!(
+                "unknown unit '{unit}' in '{text}' (use ms, s, m or h)"
+            ));
+        }
+    };
+    if !(seconds.is_finite() && seconds > 0.0 && seconds < 1e7) {
+        return Err(format!("'{text}' must be a positive duration"));
+    }
+    Ok(Duration::from_secs_f64(seconds))
+}
+
+/// Set by the first Ctrl-C (SIGINT/SIGTERM): the render loop then stops after the frame
+/// in progress and writes what has accumulated. A second Ctrl-C exits at once (130).
+fn interrupt_flag() -> Arc<AtomicBool> {
+    let flag = Arc::new(AtomicBool::new(false));
+    let handler_flag = flag.clone();
+    let installed = ctrlc::set_handler(move || {
+        if handler_flag.swap(true, Ordering::SeqCst) {
+            std::process::exit(130);
+        }
+    });
+    if let Err(e) = installed {
+        eprintln!("warning: Ctrl-C will not save the image: {e}");
+    }
+    flag
+}
+
+/// `1234567` → `1,234,567`.
+fn group(n: u64) -> String {
+    let s = n.to_string();
+    let mut out = String::new();
+    for (i, c) in s.chars().enumerate() {
+        if i > 0 && (s.len() - i).is_multiple_of(3) {
+            out.push(',');
+        }
+        out.push(c);
+    }
+    out
+}
+
+/// A linear image (.hdr or .exr: an environment map, or a render to compare), with
+/// NaN, infinite and negative values read as zero and counted in a warning.
+fn load_linear_image(path: &Path) -> Result<EnvironmentMap> {
+    let loaded = sylva::scenes::environment::load_environment(path)?;
+    if loaded.repaired_texels > 0 {
+        eprintln!(
+            "warning: {}: {} NaN, infinite or negative texels set to zero",
+            path.display(),
+            loaded.repaired_texels
+        );
+    }
+    Ok(loaded.map)
+}

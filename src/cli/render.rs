@@ -1,0 +1,451 @@
+//! `sylva render`: a scene's frames refined progressively into a PNG or EXR, with
+//! snapshots, checkpoints and the summary of what was traced.
+
+use super::*;
+use indicatif::{ProgressBar, ProgressStyle};
+use std::time::Instant;
+use sylva::engine::discontinuity::{DiscontinuityFilter, FilteredImage};
+use sylva::engine::film::Tile;
+use sylva::systems::shown_film;
+
+/// Quality presets of `--preset`.
+#[derive(clap::ValueEnum, Clone, Copy, Debug, PartialEq, Eq)]
+enum Preset {
+    /// 1 camera sample and 1 light sample per hit, adaptive transparency and the
+    /// discontinuity filter on: fast frames to refine progressively.
+    Interactive,
+    /// 4 camera samples and 4 light samples per hit, exact transparency.
+    Still,
+}
+
+/// Parses `NEAR,FAR,DEPTH_NEAR,DEPTH_FAR[,WEIGHT]` into a checked transparency curve.
+fn parse_transparency_curve(text: &str) -> Result<TransparencyCurve, String> {
+    let parts: Vec<&str> = text.split(',').map(str::trim).collect();
+    if !(4..=5).contains(&parts.len()) {
+        return Err(format!(
+            "'{text}': expected NEAR,FAR,DEPTH_NEAR,DEPTH_FAR[,WEIGHT], e.g. 5,40,4,1,0.75"
+        ));
+    }
+    let number = |i: usize| -> Result<f32, String> {
+        parts[i]
+            .parse::<f32>()
+            .map_err(|_| format!("'{}' is not a number", parts[i]))
+    };
+    let depth = |i: usize| -> Result<u32, String> {
+        parts[i]
+            .parse::<u32>()
+            .map_err(|_| format!("'{}' is not a whole number of holes", parts[i]))
+    };
+    let curve = TransparencyCurve {
+        near: number(0)?,
+        far: number(1)?,
+        depth_near: depth(2)?,
+        depth_far: depth(3)?,
+        weight: if parts.len() == 5 {
+            number(4)?
+        } else {
+            TransparencyCurve::default().weight
+        },
+    };
+    curve.validate()?;
+    Ok(curve)
+}
+
+#[derive(Args, Debug)]
+pub(crate) struct RenderArgs {
+    #[command(flatten)]
+    scene: SceneArgs,
+    /// Image width in pixels [default: height × 4/3 (640 at the default height), or × the
+    /// glTF camera's aspect ratio].
+    #[arg(long, allow_negative_numbers = true, value_parser = clap::value_parser!(u32).range(1..=16384))]
+    width: Option<u32>,
+    /// Image height in pixels.
+    #[arg(long, default_value_t = 480, allow_negative_numbers = true, value_parser = clap::value_parser!(u32).range(1..=16384))]
+    height: u32,
+    /// Quality preset: interactive (1 camera sample, 1 light sample per hit, adaptive
+    /// transparency, discontinuity filter) or still (4 and 4, exact, unfiltered). --spp,
+    /// --light-samples, --adaptive-transparency and --filter override it.
+    #[arg(long, value_enum)]
+    preset: Option<Preset>,
+    /// Treat alpha holes beyond a distance-dependent allowance as opaque (shaded with the
+    /// leaf texture's mean colour × 0.75) [default: on with --preset interactive, else off].
+    #[arg(long, value_enum, value_name = "on|off")]
+    adaptive_transparency: Option<Switch>,
+    /// The allowance: NEAR,FAR,DEPTH_NEAR,DEPTH_FAR[,WEIGHT] — up to NEAR metres a ray
+    /// passes DEPTH_NEAR holes, beyond FAR only DEPTH_FAR, linear in between.
+    #[arg(long, value_name = "CURVE", default_value = "5,40,4,1,0.75", allow_hyphen_values = true, value_parser = parse_transparency_curve)]
+    transparency_curve: TransparencyCurve,
+    /// Interleaved sampling of the virtual lights: pixels of an N×N tile draw from
+    /// different light subsets, rotating every sample (1 = off, independent picks).
+    #[arg(long, value_name = "N", default_value_t = 4, allow_negative_numbers = true, value_parser = clap::value_parser!(u32).range(1..=64))]
+    interleave: u32,
+    /// The discontinuity filter on the written image: each pixel averages the light
+    /// (not the texture) of its N×N interleaving window over neighbours on the same
+    /// surface; the accumulated film and checkpoints stay unfiltered [default: on with
+    /// --preset interactive, else off].
+    #[arg(long, value_enum, value_name = "on|off")]
+    filter: Option<Switch>,
+    /// Light subsets for --interleave [default: N²].
+    #[arg(long, value_name = "S", allow_negative_numbers = true, value_parser = clap::value_parser!(u32).range(1..=65536))]
+    subsets: Option<u32>,
+    /// Camera samples per pixel per frame [default: 4, or the preset's].
+    #[arg(long, allow_negative_numbers = true, value_parser = clap::value_parser!(u32).range(1..=65536))]
+    spp: Option<u32>,
+    /// Diffuse bounces of indirect light after the first hit: continuation rays with
+    /// direct light at every surface they reach (0 = direct light only).
+    #[arg(long, default_value_t = 0, allow_negative_numbers = true, value_parser = clap::value_parser!(u32).range(0..=16))]
+    bounces: u32,
+    /// Sky shadow rays per camera hit, or virtual lights sampled per hit with --env
+    /// (0 = sun only) [default: 2, or the preset's].
+    #[arg(long, visible_alias = "light-samples", allow_negative_numbers = true, value_parser = clap::value_parser!(u32).range(0..=1024))]
+    sky_samples: Option<u32>,
+    /// Progressive frames the image should hold (each with new random numbers) [default: 1].
+    /// With --resume, the total including the checkpoint's frames.
+    #[arg(long, allow_negative_numbers = true, value_parser = clap::value_parser!(u32).range(1..=10_000_000))]
+    frames: Option<u32>,
+    /// Refine until this much time is spent (e.g. 5s, 500ms, 2m); --frames then caps it.
+    #[arg(long, allow_hyphen_values = true, value_parser = parse_duration)]
+    time: Option<Duration>,
+    /// Also write the image every K frames, as OUT.fNNNNNN.EXT.
+    #[arg(long, value_name = "K", allow_negative_numbers = true, value_parser = clap::value_parser!(u32).range(1..))]
+    snapshot_every: Option<u32>,
+    /// Save the exact accumulation state at the end, to resume later with --resume.
+    #[arg(long, value_name = "FILE")]
+    checkpoint: Option<PathBuf>,
+    /// Continue a checkpoint (same scene and settings): the result is bit for bit what
+    /// one uninterrupted run would give.
+    #[arg(long, value_name = "FILE")]
+    resume: Option<PathBuf>,
+    /// Light the scene with a latitude-longitude HDR environment map (.hdr or .exr)
+    /// instead of the scene's sun and sky.
+    #[arg(long, value_name = "FILE")]
+    env: Option<PathBuf>,
+    /// Virtual directional lights the environment map is discretised into (median cut).
+    #[arg(long, default_value_t = 1024, allow_negative_numbers = true, value_parser = clap::value_parser!(u32).range(1..=65536))]
+    lights: u32,
+    /// Exposure in stops, applied before tone mapping (PNG only).
+    #[arg(long, default_value_t = 0.0, allow_hyphen_values = true)]
+    exposure: f32,
+    /// Output image: .png or .exr.
+    #[arg(long, short, default_value = "sylva.png")]
+    out: PathBuf,
+    /// Write a Chrome trace (open in chrome://tracing or Perfetto) of every stage and tile.
+    #[arg(long)]
+    trace: Option<PathBuf>,
+    /// No progress bar or summary.
+    #[arg(long, short)]
+    quiet: bool,
+}
+
+/// What an output image records about how it was made (PNG tEXt / EXR attributes).
+fn image_metadata(
+    args: &RenderArgs,
+    film: &Film,
+    width: u32,
+    quality: &Quality,
+) -> Vec<(String, String)> {
+    let (spp, interleave) = (quality.samples_per_pixel, quality.interleave);
+    let curve = quality.transparency.map_or("off".to_string(), |c| {
+        format!(
+            "{},{},{},{},{}",
+            c.near, c.far, c.depth_near, c.depth_far, c.weight
+        )
+    });
+    [
+        ("Software", format!("sylva {}", env!("CARGO_PKG_VERSION"))),
+        ("sylva.scene", scene_label(&args.scene)),
+        ("sylva.seed", args.scene.seed.to_string()),
+        ("sylva.size", format!("{width}x{}", args.height)),
+        ("sylva.frames", film.frames().to_string()),
+        (
+            "sylva.spp",
+            (u64::from(film.frames()) * u64::from(spp)).to_string(),
+        ),
+        ("sylva.spp_per_frame", spp.to_string()),
+        ("sylva.light_samples", quality.light_samples.to_string()),
+        ("sylva.adaptive_transparency", curve),
+        (
+            "sylva.filter",
+            quality.filter.map_or("off".to_string(), |f| {
+                format!("discontinuity {0}x{0}", f.window)
+            }),
+        ),
+        (
+            "sylva.interleave",
+            format!(
+                "{} ({} subsets)",
+                interleave.pattern,
+                interleave.subset_count()
+            ),
+        ),
+        (
+            "sylva.environment",
+            args.env
+                .as_ref()
+                .map_or("scene sun and sky".to_string(), |p| {
+                    format!("{} ({} lights)", p.display(), args.lights)
+                }),
+        ),
+        ("sylva.exposure", args.exposure.to_string()),
+        (
+            "sylva.rejected_samples",
+            film.rejected_samples().to_string(),
+        ),
+        ("sylva.fireflies", film.fireflies().to_string()),
+    ]
+    .into_iter()
+    .map(|(k, v)| (k.to_string(), v))
+    .collect()
+}
+
+/// The quality `render` asks for: the preset's, with the flags that override it.
+fn quality(args: &RenderArgs) -> Quality {
+    let preset = match args.preset {
+        Some(Preset::Interactive) => Quality::interactive(),
+        Some(Preset::Still) => Quality::still(),
+        None => Quality::default(),
+    };
+    let on =
+        |switch: Option<Switch>, preset_on: bool| switch.map_or(preset_on, |s| s == Switch::On);
+    Quality {
+        samples_per_pixel: args.spp.unwrap_or(preset.samples_per_pixel),
+        light_samples: args.sky_samples.unwrap_or(preset.light_samples),
+        bounces: args.bounces,
+        transparency: on(args.adaptive_transparency, preset.transparency.is_some())
+            .then_some(args.transparency_curve),
+        interleave: LightInterleave {
+            pattern: args.interleave,
+            subsets: args.subsets.unwrap_or(0),
+        },
+        filter: on(args.filter, preset.filter.is_some())
+            .then(|| DiscontinuityFilter::for_pattern(args.interleave)),
+    }
+}
+
+/// Identifies everything a checkpoint's pixels depend on: the scene, the image size,
+/// the environment and the quality (not the exposure or the display filter, which only
+/// change the written image).
+fn checkpoint_fingerprint(args: &RenderArgs, width: u32, quality: &Quality) -> u64 {
+    let mut hash = Fingerprint::new("sylva checkpoint v2");
+    hash_scene(&mut hash, &args.scene);
+    hash.u32(width)
+        .u32(args.height)
+        .text(
+            &args
+                .env
+                .as_ref()
+                .map_or(String::new(), |p| p.display().to_string()),
+        )
+        .u32(args.lights)
+        .u64(quality.fingerprint());
+    hash.finish()
+}
+
+/// `out.png` → `out.f000016.png`.
+fn snapshot_path(out: &Path, frames: u32) -> PathBuf {
+    let stem = out
+        .file_stem()
+        .map_or("sylva".into(), |s| s.to_string_lossy().into_owned());
+    let extension = out
+        .extension()
+        .map_or("png".into(), |e| e.to_string_lossy().into_owned());
+    out.with_file_name(format!("{stem}.f{frames:06}.{extension}"))
+}
+
+/// Runs `sylva render`.
+pub(crate) fn run(args: RenderArgs) -> Result<()> {
+    check_output_path(&args.out)?;
+    if !args.exposure.is_finite() {
+        bail!(
+            "--exposure must be a finite number of stops, got {}",
+            args.exposure
+        );
+    }
+    let _trace_guard = init_tracing(args.trace.as_deref());
+    let mut world = World::new();
+    let (mut scene, aspect, environment) =
+        build_lit(&mut world, &args.scene, args.env.as_deref(), args.lights)?;
+    let aspect = aspect
+        .filter(|a| a.is_finite() && *a > 0.0)
+        .unwrap_or(4.0 / 3.0);
+    let width = args
+        .width
+        .unwrap_or_else(|| ((args.height as f32 * aspect).round() as u32).clamp(1, 16384));
+    let quality = quality(&args);
+    scene.camera.width = width;
+    scene.camera.height = args.height;
+    scene.camera.exposure = args.exposure;
+    let stats = scene.stats();
+    let (generate_time, blas_time) = (scene.generate_time, scene.blas_time);
+    let spawned = spawn(&mut world, scene);
+    if let Some(environment) = environment {
+        world.spawn(environment);
+    }
+    quality.apply(&mut world, spawned.camera);
+    let spp = quality.samples_per_pixel;
+    let fingerprint = checkpoint_fingerprint(&args, width, &quality);
+    if let Some(path) = &args.resume {
+        let film = Film::read_checkpoint(path, fingerprint)?;
+        world.entity_mut(spawned.camera).insert(film);
+    }
+    let resumed_frames = world.get::<Film>(spawned.camera).map_or(0, Film::frames);
+    let target_frames = args.frames.unwrap_or(1);
+    if args.time.is_none() && target_frames <= resumed_frames {
+        bail!("the checkpoint already holds {resumed_frames} frames; ask for more with --frames");
+    }
+
+    let tiles = Tile::grid(
+        width,
+        args.height,
+        sylva::engine::RenderParams::default().tile_size,
+    )
+    .len() as u64;
+    let bar = if args.quiet {
+        ProgressBar::hidden()
+    } else if args.time.is_some() {
+        ProgressBar::new_spinner()
+    } else {
+        ProgressBar::new(tiles * (target_frames - resumed_frames) as u64)
+    };
+    bar.set_style(
+        ProgressStyle::with_template(if args.time.is_some() {
+            "{spinner} refining: {msg}, {elapsed_precise}"
+        } else {
+            "{spinner} rendering [{bar:40}] {pos}/{len} tiles, {elapsed_precise} (eta {eta})"
+        })
+        .expect("the template is valid")
+        .progress_chars("=> "),
+    );
+    let tick = bar.clone();
+    world.insert_resource(TileProgress(Some(Arc::new(move |_| tick.inc(1)))));
+
+    let start = Instant::now();
+    let mut schedule = frame_schedule();
+    let interrupted = interrupt_flag();
+    let stop = StopAt {
+        frames: if args.time.is_some() {
+            args.frames
+        } else {
+            Some(target_frames)
+        },
+        budget: args.time,
+        interrupt: Some(interrupted.clone()),
+    };
+    let mut snapshot_failure = None;
+    let (stopped, _) = refine(
+        &mut world,
+        &mut schedule,
+        spawned.camera,
+        &stop,
+        |world, progress| {
+            let frames = progress.frames;
+            if args.time.is_some() {
+                bar.set_message(format!(
+                    "{frames} frames, {} spp",
+                    u64::from(frames) * u64::from(spp)
+                ));
+            }
+            if let Some(every) = args.snapshot_every
+                && frames.is_multiple_of(every)
+            {
+                let film = world
+                    .get::<Film>(spawned.camera)
+                    .expect("cameras have films");
+                let metadata = image_metadata(&args, film, width, &quality);
+                let written = shown_film(film, world.get::<FilteredImage>(spawned.camera))
+                    .write_with(&snapshot_path(&args.out, frames), args.exposure, &metadata);
+                if let Err(error) = written {
+                    snapshot_failure = Some(error);
+                    return Flow::Stop;
+                }
+            }
+            Flow::Continue
+        },
+    );
+    if let Some(error) = snapshot_failure {
+        return Err(error.into());
+    }
+    if stopped == Stopped::Interrupted {
+        bar.finish_and_clear();
+        let frames = world.get::<Film>(spawned.camera).map_or(0, Film::frames);
+        eprintln!(
+            "interrupted: writing the {frames} frames accumulated so far (Ctrl-C again to quit without writing)"
+        );
+    }
+    let wall = start.elapsed();
+    bar.finish_and_clear();
+
+    let film = world
+        .get::<Film>(spawned.camera)
+        .ok_or_else(|| anyhow::anyhow!("the camera has no film"))?;
+    let metadata = image_metadata(&args, film, width, &quality);
+    shown_film(film, world.get::<FilteredImage>(spawned.camera)).write_with(
+        &args.out,
+        args.exposure,
+        &metadata,
+    )?;
+    if let Some(path) = &args.checkpoint {
+        film.write_checkpoint(path, fingerprint)?;
+    }
+    if interrupted.load(Ordering::SeqCst) {
+        eprintln!("wrote {}", args.out.display());
+        std::process::exit(130);
+    }
+    let render_stats = world.resource::<RenderStats>();
+    let tlas = world.resource::<TopLevelState>();
+    let render_s = render_stats.total_render.as_secs_f64();
+    let rays = render_stats.total.rays();
+    if film.rejected_samples() > 0 {
+        eprintln!(
+            "warning: {} NaN/Inf samples were dropped",
+            film.rejected_samples()
+        );
+    }
+    if !args.quiet {
+        let rendered = render_stats.frames;
+        println!(
+            "{}: {}x{}, {} frames at {} spp ({} spp in all) -> {}\n  {} instances, {} instanced triangles ({} unique), BLAS build {:.2} s, TLAS build {:.1} ms, scene generation {:.2} s\n  render {:.2} s ({:.3} s per frame), {:.2} M rays/s ({} camera + {} shadow rays), {:.2} transparency segments per camera ray ({:.2} holes tested), {} holes made opaque, {}, total {:.2} s\n  per ray: {:.1} nodes visited, {:.1} primitive tests (instances and triangles), {:.2} alpha tests ({:.2} sampled the texture)",
+            scene_label(&args.scene),
+            width,
+            args.height,
+            film.frames(),
+            spp,
+            film.frames() as u64 * spp as u64,
+            args.out.display(),
+            group(stats.instances as u64),
+            group(stats.instanced_triangles),
+            group(stats.unique_triangles as u64),
+            blas_time.as_secs_f64(),
+            tlas.last_build.as_secs_f64() * 1e3,
+            generate_time.as_secs_f64(),
+            render_s,
+            render_s / rendered.max(1) as f64,
+            rays as f64 / render_s.max(1e-9) / 1e6,
+            group(render_stats.total.closest_rays),
+            group(render_stats.total.any_rays),
+            render_stats.total.segments_per_closest_ray(),
+            render_stats.total.hole_tests_per_closest_ray(),
+            group(render_stats.total.opaque_holes),
+            fireflies_summary(film),
+            wall.as_secs_f64(),
+            render_stats.total.nodes_visited as f64 / rays.max(1) as f64,
+            render_stats.total.primitive_tests as f64 / rays.max(1) as f64,
+            render_stats.total.filter_tests as f64 / rays.max(1) as f64,
+            render_stats.total.texture_alpha_tests as f64 / rays.max(1) as f64,
+        );
+    }
+    Ok(())
+}
+
+/// The firefly count for the summary line, or why there is none yet.
+fn fireflies_summary(film: &Film) -> String {
+    use sylva::engine::film::{FIREFLY_MIN_FRAMES, FIREFLY_RATIO};
+    if film.frames() <= FIREFLY_MIN_FRAMES {
+        format!("fireflies judged from frame {}", FIREFLY_MIN_FRAMES + 1)
+    } else {
+        format!(
+            "{} fireflies (pixel-frames over {FIREFLY_RATIO}x their pixel's mean)",
+            group(film.fireflies())
+        )
+    }
+}
