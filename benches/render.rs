@@ -44,7 +44,7 @@ fn rays(c: &mut Criterion) {
         .measurement_time(Duration::from_secs(20));
     let params = RenderParams {
         samples_per_pixel: 4,
-        sky_samples: 2,
+        light_samples: 2,
         ..RenderParams::default()
     };
     group.bench_function("render_4spp_2_threads", |b| {

@@ -20,7 +20,7 @@ fn main() {
     scene.camera.width = 320;
     scene.camera.height = 240;
     scene.camera.samples_per_pixel = 1;
-    scene.camera.sky_samples = 1;
+    scene.camera.light_samples = 1;
     let spawned = spawn(&mut world, scene);
     let mut schedule = frame_schedule();
 

@@ -43,8 +43,9 @@ pub struct Camera {
     pub exposure: f32,
     /// Camera samples per pixel in one frame.
     pub samples_per_pixel: u32,
-    /// Sky shadow rays per camera hit.
-    pub sky_samples: u32,
+    /// Light samples per camera hit: shadow rays toward the sky, or toward virtual
+    /// lights picked from an environment map (0: the sun only).
+    pub light_samples: u32,
     /// Diffuse bounces of indirect light after the first hit (0: direct light only).
     pub bounces: u32,
 }
@@ -58,7 +59,7 @@ impl Default for Camera {
             lens: Lens::Pinhole,
             exposure: 0.0,
             samples_per_pixel: 1,
-            sky_samples: 2,
+            light_samples: 2,
             bounces: 0,
         }
     }

@@ -59,8 +59,8 @@ pub struct FramePlan {
 pub struct RenderParams {
     /// Camera samples per pixel.
     pub samples_per_pixel: u32,
-    /// Sky shadow rays (light samples) per camera hit.
-    pub sky_samples: u32,
+    /// Light samples (sky or virtual-light shadow rays) per camera hit.
+    pub light_samples: u32,
     /// Seed of every random number.
     pub seed: u64,
     /// Tile edge in pixels.
@@ -77,7 +77,7 @@ impl Default for RenderParams {
     fn default() -> Self {
         Self {
             samples_per_pixel: 1,
-            sky_samples: 2,
+            light_samples: 2,
             seed: 0,
             tile_size: 16,
             transparency: None,
@@ -92,7 +92,7 @@ impl RenderParams {
     pub fn for_camera(camera: &Camera, seed: u64) -> Self {
         Self {
             samples_per_pixel: camera.samples_per_pixel.max(1),
-            sky_samples: camera.sky_samples,
+            light_samples: camera.light_samples,
             bounces: camera.bounces,
             seed,
             ..Default::default()
@@ -824,7 +824,7 @@ pub fn render_tile(
     let mut shading = SampleShading {
         transparency: params.transparency,
         bounces: params.bounces,
-        ..SampleShading::plain(params.sky_samples)
+        ..SampleShading::plain(params.light_samples)
     };
     for y in tile.y..tile.y + tile.height {
         for x in tile.x..tile.x + tile.width {

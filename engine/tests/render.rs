@@ -140,7 +140,7 @@ fn tile_order_and_thread_count_do_not_change_a_bit() {
         width: 57,
         height: 41,
         samples_per_pixel: 2,
-        sky_samples: 2,
+        light_samples: 2,
         ..Default::default()
     };
     let view = view_from(&camera, Vec3::new(0.0, 3.0, 8.0));

@@ -95,10 +95,10 @@ pub(crate) struct RenderArgs {
     /// direct light at every surface they reach (0 = direct light only).
     #[arg(long, default_value_t = 0, allow_negative_numbers = true, value_parser = clap::value_parser!(u32).range(0..=16))]
     bounces: u32,
-    /// Sky shadow rays per camera hit, or virtual lights sampled per hit with --env
-    /// (0 = sun only) [default: 2, or the preset's].
-    #[arg(long, visible_alias = "light-samples", allow_negative_numbers = true, value_parser = clap::value_parser!(u32).range(0..=1024))]
-    sky_samples: Option<u32>,
+    /// Light samples per camera hit: shadow rays toward the sky, or toward virtual
+    /// lights picked from the --env map (0 = sun only) [default: 2, or the preset's].
+    #[arg(long, visible_alias = "sky-samples", allow_negative_numbers = true, value_parser = clap::value_parser!(u32).range(0..=1024))]
+    light_samples: Option<u32>,
     /// Progressive frames the image should hold (each with new random numbers) [default: 1].
     /// With --resume, the total including the checkpoint's frames.
     #[arg(long, allow_negative_numbers = true, value_parser = clap::value_parser!(u32).range(1..=10_000_000))]
@@ -209,7 +209,7 @@ fn quality(args: &RenderArgs) -> Quality {
         |switch: Option<Switch>, preset_on: bool| switch.map_or(preset_on, |s| s == Switch::On);
     Quality {
         samples_per_pixel: args.spp.unwrap_or(preset.samples_per_pixel),
-        light_samples: args.sky_samples.unwrap_or(preset.light_samples),
+        light_samples: args.light_samples.unwrap_or(preset.light_samples),
         bounces: args.bounces,
         transparency: on(args.adaptive_transparency, preset.transparency.is_some())
             .then_some(args.transparency_curve),

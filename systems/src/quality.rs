@@ -96,7 +96,7 @@ impl Quality {
         let mut entity = world.entity_mut(camera);
         if let Some(mut c) = entity.get_mut::<Camera>() {
             c.samples_per_pixel = self.samples_per_pixel;
-            c.sky_samples = self.light_samples;
+            c.light_samples = self.light_samples;
             c.bounces = self.bounces;
         }
         entity.insert(self.interleave);
@@ -247,7 +247,7 @@ mod tests {
         .apply(&mut world, camera);
         let entity = world.entity(camera);
         let c = entity.get::<Camera>().unwrap();
-        assert_eq!((c.samples_per_pixel, c.sky_samples, c.bounces), (4, 4, 2));
+        assert_eq!((c.samples_per_pixel, c.light_samples, c.bounces), (4, 4, 2));
         assert!(!entity.contains::<TransparencyCurve>());
         assert!(!entity.contains::<DiscontinuityFilter>());
         assert_eq!(

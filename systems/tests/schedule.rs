@@ -73,7 +73,7 @@ fn test_world(threads: usize) -> TestWorld {
                 width: 48,
                 height: 32,
                 samples_per_pixel: 1,
-                sky_samples: 1,
+                light_samples: 1,
                 ..Default::default()
             },
             Transform::looking_at(Vec3::new(0.0, 3.0, 8.0), Vec3::ZERO, Vec3::Y),
