@@ -35,8 +35,8 @@ pub mod prelude {
     };
     pub use sylva_scenes::{SceneBuild, build_scene, move_plant, plant_at, spawn};
     pub use sylva_systems::{
-        Fingerprint, Flow, Frame, ImageOutput, OutputLog, Progress, Quality, RenderPool,
-        RenderSeed, RenderStats, RenderSystems, StopAt, Stopped, TileProgress, TopLevelState,
-        frame_schedule, init_render_world, refine,
+        Fingerprint, Flow, Frame, Progress, Quality, RenderPool, RenderSeed, RenderStats,
+        RenderSystems, StopAt, Stopped, TileProgress, TopLevelState, frame_schedule,
+        init_render_world, refine,
     };
 }

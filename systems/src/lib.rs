@@ -2,7 +2,7 @@
 //!
 //! The bevy_ecs side of Sylva: resources, the [`RenderSystems`] sets and the frame
 //! schedule. Each stage is its own system with a run condition, so a frame that needs
-//! no rebuild, no shader compile or no output does not pay for it:
+//! no rebuild, no shader compile or no filter does not pay for it:
 //!
 //! 1. `Animate` — [`animate`] sways plants with a `Sway` component in the `Wind` (only
 //!    when some plant has one), advancing the `AnimationClock` by fixed sub-steps;
@@ -16,7 +16,9 @@
 //! 5. `Accumulate` — [`accumulate`] into each camera's `Film`;
 //! 6. `Display` — [`filter_display`]: the discontinuity filter of cameras with a
 //!    `DiscontinuityFilter` (only when some camera has one), into a `FilteredImage`;
-//! 7. `Output` — [`output`] writes requested images (filtered where there is one).
+//! 7. `Output` — empty in this schedule: where a program puts what reads a frame's
+//!    results. The CLI writes its images after the schedule has run (with their
+//!    metadata, snapshots and checkpoints, on the progressive driver [`refine`]).
 //!
 //! Threads: all data-parallel work (tiles, BVH builds) runs on the rayon [`RenderPool`];
 //! bevy's task pool only runs the systems themselves, whose threads block while the pool
@@ -33,7 +35,6 @@ pub use systems::*;
 
 use bevy_ecs::prelude::*;
 use bevy_ecs::schedule::{MultiThreadedExecutor, ScheduleLabel};
-use std::path::PathBuf;
 use std::sync::Arc;
 use std::time::Duration;
 use sylva_engine::bvh::{BuildParams, TraversalStats};
@@ -59,7 +60,8 @@ pub enum RenderSystems {
     Accumulate,
     /// Films are filtered for display.
     Display,
-    /// Images are written.
+    /// A frame's results are read: empty in [`frame_schedule`], for a program's own
+    /// systems (the CLI writes its images after the schedule).
     Output,
 }
 
@@ -203,19 +205,6 @@ pub struct RenderStats {
     pub total_render: Duration,
 }
 
-/// Ask the `output` stage to write a camera's film once it holds `after_frames` frames.
-#[derive(Component, Clone, Debug, PartialEq)]
-pub struct ImageOutput {
-    /// `.png` or `.exr`.
-    pub path: PathBuf,
-    /// Write when the film has accumulated exactly this many frames.
-    pub after_frames: u32,
-}
-
-/// Results of the `output` stage, oldest first: the path written, or the error message.
-#[derive(Resource, Clone, Debug, Default)]
-pub struct OutputLog(pub Vec<Result<PathBuf, String>>);
-
 /// Inserts every resource the schedule needs (keeping those already present) and a
 /// render pool of `threads` workers (0 = one per core).
 pub fn init_render_world(
@@ -235,7 +224,6 @@ pub fn init_render_world(
     world.init_resource::<TileProgress>();
     world.init_resource::<TopLevelState>();
     world.init_resource::<RenderStats>();
-    world.init_resource::<OutputLog>();
     Ok(())
 }
 
@@ -288,9 +276,6 @@ pub fn frame_schedule() -> Schedule {
         filter_display
             .run_if(any_with_component::<sylva_engine::discontinuity::DiscontinuityFilter>)
             .in_set(RenderSystems::Display),
-        output
-            .run_if(any_with_component::<ImageOutput>)
-            .in_set(RenderSystems::Output),
     ));
     schedule
 }

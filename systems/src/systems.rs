@@ -1,8 +1,7 @@
 //! The systems of the frame schedule and their run conditions.
 
 use crate::{
-    BuildSettings, ImageOutput, OutputLog, RenderPool, RenderSeed, RenderStats, TileProgress,
-    TopLevelState, WorldOrigin,
+    BuildSettings, RenderPool, RenderSeed, RenderStats, TileProgress, TopLevelState, WorldOrigin,
 };
 use bevy_ecs::prelude::*;
 use std::time::Instant;
@@ -468,27 +467,5 @@ pub fn shown_film<'a>(
             std::borrow::Cow::Owned(film.with_means(&image.pixels))
         }
         _ => std::borrow::Cow::Borrowed(film),
-    }
-}
-
-/// Writes the films of cameras whose [`ImageOutput`] frame count has been reached
-/// (filtered where the camera has a [`FilteredImage`]).
-pub fn output(
-    cameras: Query<(&Camera, &Film, &ImageOutput, Option<&FilteredImage>), Changed<Film>>,
-    mut log: ResMut<OutputLog>,
-) {
-    for (camera, film, request, filtered) in &cameras {
-        if film.frames() != request.after_frames {
-            continue;
-        }
-        let _span = tracing::info_span!("output", path = %request.path.display()).entered();
-        let result = shown_film(film, filtered)
-            .write(&request.path, camera.exposure)
-            .map(|()| request.path.clone())
-            .map_err(|e| e.to_string());
-        if let Err(e) = &result {
-            tracing::error!("{e}");
-        }
-        log.0.push(result);
     }
 }
