@@ -6,6 +6,7 @@ use indicatif::{ProgressBar, ProgressStyle};
 use std::time::Instant;
 use sylva::engine::discontinuity::{DiscontinuityFilter, FilteredImage};
 use sylva::engine::film::Tile;
+use sylva::scenes::SceneStats;
 use sylva::systems::shown_film;
 
 /// Quality presets of `--preset`.
@@ -294,28 +295,7 @@ pub(crate) fn run(args: RenderArgs) -> Result<()> {
         bail!("the checkpoint already holds {resumed_frames} frames; ask for more with --frames");
     }
 
-    let tiles = Tile::grid(
-        width,
-        args.height,
-        sylva::engine::RenderParams::default().tile_size,
-    )
-    .len() as u64;
-    let bar = if args.quiet {
-        ProgressBar::hidden()
-    } else if args.time.is_some() {
-        ProgressBar::new_spinner()
-    } else {
-        ProgressBar::new(tiles * (target_frames - resumed_frames) as u64)
-    };
-    bar.set_style(
-        ProgressStyle::with_template(if args.time.is_some() {
-            "{spinner} refining: {msg}, {elapsed_precise}"
-        } else {
-            "{spinner} rendering [{bar:40}] {pos}/{len} tiles, {elapsed_precise} (eta {eta})"
-        })
-        .expect("the template is valid")
-        .progress_chars("=> "),
-    );
+    let bar = progress_bar(&args, width, target_frames.saturating_sub(resumed_frames));
     let tick = bar.clone();
     world.insert_resource(TileProgress(Some(Arc::new(move |_| tick.inc(1)))));
 
@@ -391,10 +371,6 @@ pub(crate) fn run(args: RenderArgs) -> Result<()> {
         eprintln!("wrote {}", args.out.display());
         std::process::exit(130);
     }
-    let render_stats = world.resource::<RenderStats>();
-    let tlas = world.resource::<TopLevelState>();
-    let render_s = render_stats.total_render.as_secs_f64();
-    let rays = render_stats.total.rays();
     if film.rejected_samples() > 0 {
         eprintln!(
             "warning: {} NaN/Inf samples were dropped",
@@ -402,39 +378,97 @@ pub(crate) fn run(args: RenderArgs) -> Result<()> {
         );
     }
     if !args.quiet {
-        let rendered = render_stats.frames;
-        println!(
-            "{}: {}x{}, {} frames at {} spp ({} spp in all) -> {}\n  {} instances, {} instanced triangles ({} unique), BLAS build {:.2} s, TLAS build {:.1} ms, scene generation {:.2} s\n  render {:.2} s ({:.3} s per frame), {:.2} M rays/s ({} camera + {} shadow rays), {:.2} transparency segments per camera ray ({:.2} holes tested), {} holes made opaque, {}, total {:.2} s\n  per ray: {:.1} nodes visited, {:.1} primitive tests (instances and triangles), {:.2} alpha tests ({:.2} sampled the texture)",
-            scene_label(&args.scene),
-            width,
-            args.height,
-            film.frames(),
-            spp,
-            film.frames() as u64 * spp as u64,
-            args.out.display(),
-            group(stats.instances as u64),
-            group(stats.instanced_triangles),
-            group(stats.unique_triangles as u64),
-            blas_time.as_secs_f64(),
-            tlas.last_build.as_secs_f64() * 1e3,
-            generate_time.as_secs_f64(),
-            render_s,
-            render_s / rendered.max(1) as f64,
-            rays as f64 / render_s.max(1e-9) / 1e6,
-            group(render_stats.total.closest_rays),
-            group(render_stats.total.any_rays),
-            render_stats.total.segments_per_closest_ray(),
-            render_stats.total.hole_tests_per_closest_ray(),
-            group(render_stats.total.opaque_holes),
-            fireflies_summary(film),
-            wall.as_secs_f64(),
-            render_stats.total.nodes_visited as f64 / rays.max(1) as f64,
-            render_stats.total.primitive_tests as f64 / rays.max(1) as f64,
-            render_stats.total.filter_tests as f64 / rays.max(1) as f64,
-            render_stats.total.texture_alpha_tests as f64 / rays.max(1) as f64,
-        );
+        let built = Built {
+            stats,
+            generate_time,
+            blas_time,
+        };
+        println!("{}", summary(&args, width, spp, film, &world, &built, wall));
     }
     Ok(())
+}
+
+/// What building the scene took and made, for the summary.
+struct Built {
+    stats: SceneStats,
+    generate_time: Duration,
+    blas_time: Duration,
+}
+
+/// The summary lines printed after a render: the image, the scene, the time and what
+/// the rays did.
+fn summary(
+    args: &RenderArgs,
+    width: u32,
+    spp: u32,
+    film: &Film,
+    world: &World,
+    built: &Built,
+    wall: Duration,
+) -> String {
+    let render_stats = world.resource::<RenderStats>();
+    let tlas = world.resource::<TopLevelState>();
+    let render_s = render_stats.total_render.as_secs_f64();
+    let rays = render_stats.total.rays();
+    let rendered = render_stats.frames;
+    format!(
+        "{}: {}x{}, {} frames at {} spp ({} spp in all) -> {}\n  {} instances, {} instanced triangles ({} unique), BLAS build {:.2} s, TLAS build {:.1} ms, scene generation {:.2} s\n  render {:.2} s ({:.3} s per frame), {:.2} M rays/s ({} camera + {} shadow rays), {:.2} transparency segments per camera ray ({:.2} holes tested), {} holes made opaque, {}, total {:.2} s\n  per ray: {:.1} nodes visited, {:.1} primitive tests (instances and triangles), {:.2} alpha tests ({:.2} sampled the texture)",
+        scene_label(&args.scene),
+        width,
+        args.height,
+        film.frames(),
+        spp,
+        film.frames() as u64 * spp as u64,
+        args.out.display(),
+        group(built.stats.instances as u64),
+        group(built.stats.instanced_triangles),
+        group(built.stats.unique_triangles as u64),
+        built.blas_time.as_secs_f64(),
+        tlas.last_build.as_secs_f64() * 1e3,
+        built.generate_time.as_secs_f64(),
+        render_s,
+        render_s / rendered.max(1) as f64,
+        rays as f64 / render_s.max(1e-9) / 1e6,
+        group(render_stats.total.closest_rays),
+        group(render_stats.total.any_rays),
+        render_stats.total.segments_per_closest_ray(),
+        render_stats.total.hole_tests_per_closest_ray(),
+        group(render_stats.total.opaque_holes),
+        fireflies_summary(film),
+        wall.as_secs_f64(),
+        render_stats.total.nodes_visited as f64 / rays.max(1) as f64,
+        render_stats.total.primitive_tests as f64 / rays.max(1) as f64,
+        render_stats.total.filter_tests as f64 / rays.max(1) as f64,
+        render_stats.total.texture_alpha_tests as f64 / rays.max(1) as f64,
+    )
+}
+
+/// A bar over the tiles of `frames` frames, or a spinner for a time budget; hidden with
+/// --quiet.
+fn progress_bar(args: &RenderArgs, width: u32, frames: u32) -> ProgressBar {
+    let tiles = Tile::grid(
+        width,
+        args.height,
+        sylva::engine::RenderParams::default().tile_size,
+    )
+    .len() as u64;
+    let bar = if args.quiet {
+        ProgressBar::hidden()
+    } else if args.time.is_some() {
+        ProgressBar::new_spinner()
+    } else {
+        ProgressBar::new(tiles * u64::from(frames))
+    };
+    bar.set_style(
+        ProgressStyle::with_template(if args.time.is_some() {
+            "{spinner} refining: {msg}, {elapsed_precise}"
+        } else {
+            "{spinner} rendering [{bar:40}] {pos}/{len} tiles, {elapsed_precise} (eta {eta})"
+        })
+        .expect("the template is valid")
+        .progress_chars("=> "),
+    );
+    bar
 }
 
 /// The firefly count for the summary line, or why there is none yet.
