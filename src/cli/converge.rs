@@ -189,17 +189,10 @@ fn reference(
         ..Quality::still()
     };
     let mut hash = Fingerprint::new("sylva converge reference v2");
-    hash_scene(&mut hash, &args.scene);
+    hash_scene(&mut hash, &args.scene, args.env.as_deref(), args.lights);
     hash.u32(args.width)
         .u32(args.height)
         .f32(args.crop)
-        .text(
-            &args
-                .env
-                .as_ref()
-                .map_or(String::new(), |p| p.display().to_string()),
-        )
-        .u32(args.lights)
         .u32(args.reference_frames)
         .u64(quality.fingerprint());
     let key = hash.finish();

@@ -167,13 +167,15 @@ fn scene_label(args: &SceneArgs) -> String {
     }
 }
 
-/// Adds what a scene's pixels depend on (which scene, camera, seed and translucency)
-/// to `hash`.
-fn hash_scene(hash: &mut Fingerprint, args: &SceneArgs) {
+/// Adds what a scene's pixels depend on to `hash`: which scene, camera, seed and
+/// translucency, and the lighting (the environment map, if any, and its light count).
+fn hash_scene(hash: &mut Fingerprint, args: &SceneArgs, env: Option<&Path>, lights: u32) {
     hash.text(&scene_label(args))
         .text(args.camera.as_deref().unwrap_or(""))
         .u64(args.seed)
-        .u32(u32::from(args.translucency == Switch::On));
+        .u32(u32::from(args.translucency == Switch::On))
+        .text(&env.map_or(String::new(), |p| p.display().to_string()))
+        .u32(lights);
 }
 
 /// Peak resident memory of this process (Linux `VmHWM`), when known.

@@ -228,17 +228,8 @@ fn quality(args: &RenderArgs) -> Quality {
 /// change the written image).
 fn checkpoint_fingerprint(args: &RenderArgs, width: u32, quality: &Quality) -> u64 {
     let mut hash = Fingerprint::new("sylva checkpoint v2");
-    hash_scene(&mut hash, &args.scene);
-    hash.u32(width)
-        .u32(args.height)
-        .text(
-            &args
-                .env
-                .as_ref()
-                .map_or(String::new(), |p| p.display().to_string()),
-        )
-        .u32(args.lights)
-        .u64(quality.fingerprint());
+    hash_scene(&mut hash, &args.scene, args.env.as_deref(), args.lights);
+    hash.u32(width).u32(args.height).u64(quality.fingerprint());
     hash.finish()
 }
 
