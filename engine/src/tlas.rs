@@ -395,6 +395,23 @@ impl TopLevel {
         }
     }
 
+    /// A hash of the tree and the instance records in slot order (transforms, inverses,
+    /// geometries, ids): equal top levels give equal hashes on any machine.
+    pub fn content_hash(&self) -> u64 {
+        let mut hash = crate::bvh::ContentHash(self.bvh.content_hash());
+        for record in &self.instances {
+            for transform in [&record.object_to_world, &record.world_to_object] {
+                transform
+                    .to_cols_array()
+                    .iter()
+                    .for_each(|v| hash.add(v.to_bits()));
+            }
+            hash.add(record.geometry.0);
+            hash.add(record.id);
+        }
+        hash.0
+    }
+
     /// Number of instances that can be hit.
     pub fn len(&self) -> usize {
         self.instances.len()

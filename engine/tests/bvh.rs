@@ -222,6 +222,22 @@ fn build_is_identical_on_any_thread_count() {
         assert_eq!(one.prim_indices, three.prim_indices, "{name}: slot order");
         assert!(one.nodes == three.nodes, "{name}: binary nodes differ");
         assert!(one.wide == three.wide, "{name}: wide nodes differ");
+        assert_eq!(one.content_hash(), three.content_hash(), "{name}: hash");
+        // Any change to what traversal reads changes the hash.
+        let mut moved = one.clone();
+        moved.wide[0].max_x[0] = f32::from_bits(moved.wide[0].max_x[0].to_bits() + 1);
+        assert_ne!(
+            moved.content_hash(),
+            one.content_hash(),
+            "{name}: a box moved"
+        );
+        let mut swapped = one.clone();
+        swapped.prim_indices.swap(0, 1);
+        assert_ne!(
+            swapped.content_hash(),
+            one.content_hash(),
+            "{name}: slots swapped"
+        );
     }
 }
 
@@ -267,6 +283,16 @@ fn a_rebuild_in_used_memory_equals_a_fresh_build() {
         assert_eq!(reused.instances, fresh.instances, "set {i}: records");
         assert!(reused.bvh.nodes == fresh.bvh.nodes, "set {i}: nodes");
         assert!(reused.bvh.wide == fresh.bvh.wide, "set {i}: wide nodes");
+        assert_eq!(reused.content_hash(), fresh.content_hash(), "set {i}: hash");
+        if !reused.instances.is_empty() {
+            let mut other = reused.clone();
+            other.instances[0].id ^= 1;
+            assert_ne!(
+                other.content_hash(),
+                fresh.content_hash(),
+                "set {i}: a record"
+            );
+        }
         assert_eq!(reused.bvh.prim_indices, fresh.bvh.prim_indices, "set {i}");
         assert_eq!(reused.outside, fresh.outside, "set {i}: outside");
         assert_eq!(reused.skipped, fresh.skipped, "set {i}: skipped");

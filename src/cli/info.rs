@@ -68,6 +68,16 @@ pub(crate) fn run(args: SceneArgs) -> Result<()> {
         }
     );
     println!("instanced tris   {}", group(stats.instanced_triangles));
+    let blas_hash = scene
+        .library
+        .geometries
+        .iter()
+        .fold(0u64, |h, g| h.rotate_left(5) ^ g.bvh.content_hash());
+    println!(
+        "tree hashes      TLAS {:016x}, BLASes {:016x}",
+        tlas.content_hash(),
+        blas_hash
+    );
     println!(
         "memory           {:.1} MB (geometry + BLAS {:.1} MB, TLAS {:.1} MB, opacity maps {:.1} MB)",
         (scene.library.memory_bytes() + tlas.memory_bytes() + opacity.memory_bytes()) as f64 / 1e6,

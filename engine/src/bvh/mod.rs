@@ -52,9 +52,51 @@ impl Bvh {
             + self.prim_indices.capacity() * 4
     }
 
+    /// A hash of the tree traversal walks (every wide node's boxes and children, and
+    /// the slot order), to check that two builds made the same tree: equal trees give
+    /// equal hashes on any machine.
+    pub fn content_hash(&self) -> u64 {
+        let mut hash = ContentHash::default();
+        for node in &self.wide {
+            for lanes in [
+                &node.min_x,
+                &node.max_x,
+                &node.min_y,
+                &node.max_y,
+                &node.min_z,
+                &node.max_z,
+            ] {
+                lanes.iter().for_each(|v| hash.add(v.to_bits()));
+            }
+            node.children
+                .iter()
+                .chain(&node.counts)
+                .for_each(|&v| hash.add(v));
+        }
+        self.prim_indices.iter().for_each(|&v| hash.add(v));
+        hash.0
+    }
+
     /// The box around everything (empty box when empty).
     pub fn bounds(&self) -> crate::math::Aabb {
         self.nodes.first().map(|n| n.bounds()).unwrap_or_default()
+    }
+}
+
+/// FNV-1a over 32-bit words, little-endian.
+pub(crate) struct ContentHash(pub(crate) u64);
+
+impl Default for ContentHash {
+    fn default() -> Self {
+        Self(0xcbf2_9ce4_8422_2325)
+    }
+}
+
+impl ContentHash {
+    pub(crate) fn add(&mut self, word: u32) {
+        for byte in word.to_le_bytes() {
+            self.0 = (self.0 ^ u64::from(byte)).wrapping_mul(0x0100_0000_01b3);
+        }
     }
 }
 
