@@ -12,6 +12,7 @@ pub mod components;
 pub mod discontinuity;
 pub mod environment;
 pub mod film;
+pub mod fingerprint;
 pub mod geometry;
 pub mod interleave;
 pub mod light;

@@ -398,18 +398,17 @@ impl TopLevel {
     /// A hash of the tree and the instance records in slot order (transforms, inverses,
     /// geometries, ids): equal top levels give equal hashes on any machine.
     pub fn content_hash(&self) -> u64 {
-        let mut hash = crate::bvh::ContentHash(self.bvh.content_hash());
+        let mut hash = crate::fingerprint::Fingerprint::untagged();
+        self.bvh.hash_into(&mut hash);
         for record in &self.instances {
             for transform in [&record.object_to_world, &record.world_to_object] {
-                transform
-                    .to_cols_array()
-                    .iter()
-                    .for_each(|v| hash.add(v.to_bits()));
+                for v in transform.to_cols_array() {
+                    hash.f32(v);
+                }
             }
-            hash.add(record.geometry.0);
-            hash.add(record.id);
+            hash.u32(record.geometry.0).u32(record.id);
         }
-        hash.0
+        hash.finish()
     }
 
     /// Number of instances that can be hit.

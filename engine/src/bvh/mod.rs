@@ -3,6 +3,8 @@
 //! primitives are: building takes their boxes, traversal takes a closure that tests a
 //! primitive slot (obvhs-style `ray_traverse` / `ray_traverse_anyhit`).
 
+use crate::fingerprint::Fingerprint;
+
 mod build;
 mod node;
 mod refit;
@@ -56,47 +58,37 @@ impl Bvh {
     /// the slot order), to check that two builds made the same tree: equal trees give
     /// equal hashes on any machine.
     pub fn content_hash(&self) -> u64 {
-        let mut hash = ContentHash::default();
+        let mut hash = Fingerprint::untagged();
+        self.hash_into(&mut hash);
+        hash.finish()
+    }
+
+    /// Feeds what [`content_hash`](Self::content_hash) covers to `hash`.
+    pub(crate) fn hash_into(&self, hash: &mut Fingerprint) {
         for node in &self.wide {
-            for lanes in [
+            let boxes = [
                 &node.min_x,
                 &node.max_x,
                 &node.min_y,
                 &node.max_y,
                 &node.min_z,
                 &node.max_z,
-            ] {
-                lanes.iter().for_each(|v| hash.add(v.to_bits()));
+            ];
+            for &v in boxes.into_iter().flatten() {
+                hash.f32(v);
             }
-            node.children
-                .iter()
-                .chain(&node.counts)
-                .for_each(|&v| hash.add(v));
+            for &v in node.children.iter().chain(&node.counts) {
+                hash.u32(v);
+            }
         }
-        self.prim_indices.iter().for_each(|&v| hash.add(v));
-        hash.0
+        for &v in &self.prim_indices {
+            hash.u32(v);
+        }
     }
 
     /// The box around everything (empty box when empty).
     pub fn bounds(&self) -> crate::math::Aabb {
         self.nodes.first().map(|n| n.bounds()).unwrap_or_default()
-    }
-}
-
-/// FNV-1a over 32-bit words, little-endian.
-pub(crate) struct ContentHash(pub(crate) u64);
-
-impl Default for ContentHash {
-    fn default() -> Self {
-        Self(0xcbf2_9ce4_8422_2325)
-    }
-}
-
-impl ContentHash {
-    pub(crate) fn add(&mut self, word: u32) {
-        for byte in word.to_le_bytes() {
-            self.0 = (self.0 ^ u64::from(byte)).wrapping_mul(0x0100_0000_01b3);
-        }
     }
 }
 
