@@ -20,6 +20,7 @@ use cli::render::RenderArgs;
 ///   sylva render --scene my_ecosystem.toml --out mine.png
 ///   sylva render --gltf model.glb --camera 0 --out model.png
 ///   sylva info --scene paper
+///   sylva view --scene forest
 #[derive(Parser, Debug)]
 #[command(name = "sylva", version, verbatim_doc_comment)]
 struct Cli {
@@ -41,6 +42,11 @@ enum Command {
     /// Print the error of linear images (.exr or .hdr) against a reference: RMSE and
     /// relMSE (mean of (I−R)²/(R²+0.01) over pixels and channels).
     Compare(CompareArgs),
+    /// Open a window onto a scene: walk through it (WASD/arrows, drag to look, scroll for
+    /// speed) at interactive quality, refining while the camera rests; --script flies a
+    /// scripted walkthrough and saves screenshots.
+    #[cfg(feature = "view")]
+    View(Box<cli::view::ViewArgs>),
 }
 
 fn main() {
@@ -50,6 +56,8 @@ fn main() {
         Command::Info(args) => cli::info::run(args),
         Command::Compare(args) => cli::compare::run(args),
         Command::Converge(args) => cli::converge::run(*args),
+        #[cfg(feature = "view")]
+        Command::View(args) => cli::view::run(*args),
     };
     if let Err(e) = result {
         eprintln!("error: {e:#}");

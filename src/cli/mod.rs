@@ -6,6 +6,8 @@ pub mod converge;
 pub mod info;
 pub mod plot;
 pub mod render;
+#[cfg(feature = "view")]
+pub mod view;
 
 use anyhow::{Result, bail};
 use clap::Args;
@@ -56,8 +58,16 @@ enum Switch {
 
 /// Logs warnings (or `RUST_LOG`) to stderr; with `trace`, every span to a Chrome trace.
 fn init_tracing(trace: Option<&Path>) -> Option<tracing_chrome::FlushGuard> {
+    init_tracing_filtered(trace, "warn")
+}
+
+/// [`init_tracing`] with another default filter (without `RUST_LOG`).
+fn init_tracing_filtered(
+    trace: Option<&Path>,
+    default_filter: &str,
+) -> Option<tracing_chrome::FlushGuard> {
     let filter = tracing_subscriber::EnvFilter::try_from_default_env()
-        .unwrap_or_else(|_| tracing_subscriber::EnvFilter::new("warn"));
+        .unwrap_or_else(|_| tracing_subscriber::EnvFilter::new(default_filter));
     let fmt = tracing_subscriber::fmt::layer()
         .with_writer(std::io::stderr)
         .with_filter(filter);

@@ -25,9 +25,11 @@
 //! works, so the cores are not oversubscribed.
 
 pub mod converge;
+pub mod live;
 mod progressive;
 mod quality;
 mod systems;
+pub mod walkthrough;
 
 pub use progressive::{Flow, Progress, StopAt, Stopped, refine};
 pub use quality::{Fingerprint, Quality};

@@ -574,3 +574,66 @@ fn the_progressive_driver_reports_a_restart_when_the_camera_moves() {
     );
     assert_eq!(progress.rendered, 8);
 }
+
+#[test]
+fn the_live_render_shows_what_a_plain_render_makes_and_restarts_on_a_move() {
+    use std::sync::mpsc;
+    use std::time::Duration;
+    use sylva_systems::live::{LiveCommand, LiveRender, ShownImage};
+    let moved = Transform::looking_at(Vec3::new(2.0, 4.0, 7.0), Vec3::ZERO, Vec3::Y);
+    let mut reference = test_world(1);
+    *reference
+        .world
+        .get_mut::<Transform>(reference.camera)
+        .unwrap() = moved;
+    let stop = StopAt {
+        frames: Some(3),
+        ..StopAt::default()
+    };
+    let camera = reference.camera;
+    refine(
+        &mut reference.world,
+        &mut reference.schedule,
+        camera,
+        &stop,
+        |_, _| Flow::Continue,
+    );
+    let expected = ShownImage::of_film(reference.film(), None, 0.0);
+
+    let w = test_world(2);
+    let (ready, frames) = mpsc::channel();
+    let mut live = LiveRender::start(w.world, w.camera, 3, move || {
+        let _ = ready.send(());
+    })
+    .unwrap();
+    frames
+        .recv_timeout(Duration::from_secs(60))
+        .expect("a first frame");
+    let command = live.send(LiveCommand::Pose(moved)).unwrap();
+    let mut after_move = Vec::new();
+    let shown = loop {
+        frames
+            .recv_timeout(Duration::from_secs(60))
+            .expect("frames after the move");
+        let Some(image) = live.take_latest() else {
+            continue;
+        };
+        if image.applied >= command {
+            after_move.push(image.frames);
+            if image.frames == 3 {
+                break image;
+            }
+        }
+    };
+    // The move restarted the film: the frames after it count from 1.
+    assert!(
+        after_move.iter().all(|&f| (1..=3).contains(&f)),
+        "{after_move:?}"
+    );
+    assert_eq!((shown.width, shown.height), (48, 32));
+    assert_eq!(shown.pixels, expected.pixels);
+    // At the frame limit the thread rests until told something.
+    assert!(frames.recv_timeout(Duration::from_millis(500)).is_err());
+    let world = live.stop().expect("the render thread ends cleanly");
+    assert_eq!(world.get::<Film>(w.camera).unwrap().frames(), 3);
+}

@@ -1,0 +1,441 @@
+//! `sylva view`: a window onto a scene. Walk through it with the keyboard and mouse
+//! while it renders at interactive quality on the render thread and refines when the
+//! camera rests; or fly a scripted walkthrough (`--script`) for tests and benchmarks.
+//! Only window glue lives here: the camera control, the scripts and the render thread
+//! are `sylva_systems::walkthrough` and `sylva_systems::live`.
+
+use super::*;
+use std::collections::HashSet;
+use std::num::NonZeroU32;
+use std::rc::Rc;
+use std::time::Instant;
+use sylva::systems::live::{LiveCommand, LiveRender, ShownImage};
+use sylva::systems::walkthrough::{FlyCamera, FlyInput, WalkthroughScript};
+use winit::application::ApplicationHandler;
+use winit::dpi::{PhysicalPosition, PhysicalSize};
+use winit::event::{ElementState, MouseButton, MouseScrollDelta, WindowEvent};
+use winit::event_loop::{ActiveEventLoop, ControlFlow, EventLoop};
+use winit::keyboard::{KeyCode, PhysicalKey};
+use winit::window::{Window, WindowId};
+
+#[derive(Args, Debug)]
+pub(crate) struct ViewArgs {
+    #[command(flatten)]
+    scene: SceneArgs,
+    /// Image width in pixels [default: height × 4/3, or × the glTF camera's aspect ratio].
+    #[arg(long, value_parser = clap::value_parser!(u32).range(1..=8192))]
+    width: Option<u32>,
+    /// Image height in pixels.
+    #[arg(long, default_value_t = 480, value_parser = clap::value_parser!(u32).range(1..=8192))]
+    height: u32,
+    /// Light the scene with a latitude-longitude HDR environment map (.hdr or .exr).
+    #[arg(long, value_name = "FILE")]
+    env: Option<PathBuf>,
+    /// Virtual directional lights the environment map is discretised into.
+    #[arg(long, default_value_t = 1024, value_parser = clap::value_parser!(u32).range(1..=65536))]
+    lights: u32,
+    /// Exposure in stops, applied before tone mapping.
+    #[arg(long, default_value_t = 0.0, allow_hyphen_values = true)]
+    exposure: f32,
+    /// Frames accumulated while the camera rests, after which rendering pauses.
+    #[arg(long, default_value_t = 64, value_parser = clap::value_parser!(u32).range(1..=100_000))]
+    max_frames: u32,
+    /// Fly a scripted walkthrough: TOML `[[step]]` tables with `position`, `look_at`,
+    /// `frames` (wait for that many accumulated frames), `screenshot` (PNG) and `quit`.
+    #[arg(long, value_name = "FILE")]
+    script: Option<PathBuf>,
+}
+
+/// Sent by the render thread when a frame is ready.
+#[derive(Debug)]
+struct FrameReady;
+
+/// Runs `sylva view`.
+pub(crate) fn run(args: ViewArgs) -> Result<()> {
+    if !args.exposure.is_finite() {
+        bail!(
+            "--exposure must be a finite number of stops, got {}",
+            args.exposure
+        );
+    }
+    let script = match &args.script {
+        Some(path) => {
+            let text = std::fs::read_to_string(path)
+                .map_err(|e| anyhow::anyhow!("{}: {e}", path.display()))?;
+            let script = WalkthroughScript::parse(&text)
+                .map_err(|e| anyhow::anyhow!("{}: {e}", path.display()))?;
+            for step in &script.steps {
+                if let Some(shot) = &step.screenshot {
+                    check_output_path(shot)?;
+                }
+            }
+            Some(script)
+        }
+        None => None,
+    };
+    if cfg!(target_os = "linux") && std::env::var_os("DISPLAY").is_none_or(|d| d.is_empty()) {
+        bail!(
+            "no display: `sylva view` opens an X11 window and DISPLAY is not set (run it in a \
+             desktop session or under Xvfb, or render to a file with `sylva render`)"
+        );
+    }
+    let event_loop = EventLoop::<FrameReady>::with_user_event()
+        .build()
+        .map_err(|e| anyhow::anyhow!("cannot open the display: {e} (try `sylva render`)"))?;
+    // winit warns about what virtual X servers report (a display of 0 mm): not the user's
+    // business.
+    let _trace_guard = init_tracing_filtered(None, "warn,winit=error");
+
+    let mut world = World::new();
+    let (mut scene, aspect, environment) =
+        build_lit(&mut world, &args.scene, args.env.as_deref(), args.lights)?;
+    let aspect = aspect
+        .filter(|a| a.is_finite() && *a > 0.0)
+        .unwrap_or(4.0 / 3.0);
+    let width = args
+        .width
+        .unwrap_or_else(|| ((args.height as f32 * aspect).round() as u32).clamp(1, 8192));
+    scene.camera.width = width;
+    scene.camera.height = args.height;
+    scene.camera.exposure = args.exposure;
+    let start_pose = scene.camera_transform;
+    // A pace for the scene's size: a twentieth of the plants' spread per second.
+    let extent = scene.plants.iter().fold(1.0f32, |m, p| {
+        m.max(p.transform.translation.x.abs())
+            .max(p.transform.translation.z.abs())
+    });
+    let spawned = spawn(&mut world, scene);
+    if let Some(environment) = environment {
+        world.spawn(environment);
+    }
+    Quality::interactive().apply(&mut world, spawned.camera);
+
+    let proxy = event_loop.create_proxy();
+    let live = LiveRender::start(world, spawned.camera, args.max_frames, move || {
+        let _ = proxy.send_event(FrameReady);
+    })?;
+    let mut app = App {
+        live,
+        label: scene_label(&args.scene),
+        size: (width, args.height),
+        window: None,
+        surface: None,
+        shown: None,
+        fly: FlyCamera::from_transform(&start_pose, (extent * 0.05).clamp(1.0, 200.0)),
+        held: HashSet::new(),
+        look: glam::Vec2::ZERO,
+        scroll: 0.0,
+        dragging: false,
+        cursor: None,
+        last_step: Instant::now(),
+        script: script.map(|s| ScriptRun {
+            steps: s.steps,
+            next: 0,
+            waiting: None,
+        }),
+        screenshots: 0,
+        error: None,
+    };
+    event_loop.run_app(&mut app)?;
+    if let Some(error) = app.error.take() {
+        return Err(error);
+    }
+    Ok(())
+}
+
+/// A script in progress: the next step to start, and the step waiting for its frames.
+struct ScriptRun {
+    steps: Vec<sylva::systems::walkthrough::ScriptStep>,
+    next: usize,
+    /// The running step's index, the sequence number of its camera command and the
+    /// frames it waits for.
+    waiting: Option<(usize, u64, u32)>,
+}
+
+struct App {
+    live: LiveRender,
+    label: String,
+    size: (u32, u32),
+    window: Option<Rc<Window>>,
+    surface: Option<softbuffer::Surface<Rc<Window>, Rc<Window>>>,
+    shown: Option<ShownImage>,
+    fly: FlyCamera,
+    held: HashSet<KeyCode>,
+    look: glam::Vec2,
+    scroll: f32,
+    dragging: bool,
+    cursor: Option<PhysicalPosition<f64>>,
+    last_step: Instant,
+    script: Option<ScriptRun>,
+    screenshots: u32,
+    error: Option<anyhow::Error>,
+}
+
+/// Radians of turn per pixel of mouse drag.
+const LOOK_PER_PIXEL: f32 = 0.004;
+
+impl App {
+    fn fail(&mut self, event_loop: &ActiveEventLoop, error: anyhow::Error) {
+        self.error = Some(error);
+        event_loop.exit();
+    }
+
+    /// What the held keys ask for.
+    fn input(&self) -> FlyInput {
+        let axis = |plus: &[KeyCode], minus: &[KeyCode]| {
+            let on = |keys: &[KeyCode]| keys.iter().any(|k| self.held.contains(k));
+            f32::from(u8::from(on(plus))) - f32::from(u8::from(on(minus)))
+        };
+        FlyInput {
+            forward: axis(
+                &[KeyCode::KeyW, KeyCode::ArrowUp],
+                &[KeyCode::KeyS, KeyCode::ArrowDown],
+            ),
+            right: axis(
+                &[KeyCode::KeyD, KeyCode::ArrowRight],
+                &[KeyCode::KeyA, KeyCode::ArrowLeft],
+            ),
+            up: axis(
+                &[KeyCode::KeyE, KeyCode::Space],
+                &[KeyCode::KeyQ, KeyCode::KeyC],
+            ),
+            look: self.look,
+            speed_steps: self.scroll,
+        }
+    }
+
+    /// The window title as a heads-up line: frames, frame time, rays/s, speed, keys.
+    fn update_title(&self) {
+        let (Some(window), Some(shown)) = (&self.window, &self.shown) else {
+            return;
+        };
+        window.set_title(&format!(
+            "sylva view: {}, {} frames, {:.0} ms/frame, {:.2} M rays/s, {:.1} m/s (WASD/arrows move, Q/E down/up, drag to look, scroll speed, P screenshot, Esc quit)",
+            self.label,
+            shown.frames,
+            shown.frame_time.as_secs_f64() * 1e3,
+            shown.rays_per_second / 1e6,
+            self.fly.speed,
+        ));
+    }
+
+    fn screenshot(&mut self, path: &Path) -> Result<()> {
+        let shown = self
+            .shown
+            .as_ref()
+            .ok_or_else(|| anyhow::anyhow!("no frame to save yet"))?;
+        let bytes: Vec<u8> = shown
+            .pixels
+            .iter()
+            .flat_map(|p| [(p >> 16) as u8, (p >> 8) as u8, *p as u8])
+            .collect();
+        let image = image::RgbImage::from_raw(shown.width, shown.height, bytes)
+            .ok_or_else(|| anyhow::anyhow!("the shown image has the wrong size"))?;
+        image
+            .save(path)
+            .map_err(|e| anyhow::anyhow!("{}: {e}", path.display()))?;
+        eprintln!("saved {}", path.display());
+        Ok(())
+    }
+
+    /// Starts the script's next step, or finishes a step whose frames are shown.
+    fn advance_script(&mut self, event_loop: &ActiveEventLoop) {
+        loop {
+            let Some(script) = &mut self.script else {
+                return;
+            };
+            match script.waiting {
+                Some((index, command, frames)) => {
+                    let Some(shown) = &self.shown else { return };
+                    if shown.applied < command || shown.frames < frames {
+                        return;
+                    }
+                    let step = script.steps[index].clone();
+                    script.waiting = None;
+                    if let Some(path) = &step.screenshot
+                        && let Err(e) = self.screenshot(path)
+                    {
+                        return self.fail(event_loop, e);
+                    }
+                    if step.quit {
+                        event_loop.exit();
+                        return;
+                    }
+                }
+                None => {
+                    let Some(step) = script.steps.get(script.next).cloned() else {
+                        return;
+                    };
+                    let index = script.next;
+                    script.next += 1;
+                    // A step that stays where the camera is sends nothing: a pose that
+                    // differs in the last bit would restart the accumulation.
+                    let command = if step.position.is_some() || step.look_at.is_some() {
+                        let pose = WalkthroughScript::pose(&step, &self.fly.transform());
+                        self.fly = FlyCamera::from_transform(&pose, self.fly.speed);
+                        let Some(command) = self.live.send(LiveCommand::Pose(pose)) else {
+                            return self.fail(event_loop, anyhow::anyhow!("the renderer stopped"));
+                        };
+                        command
+                    } else {
+                        self.live.last_sent()
+                    };
+                    if let Some(script) = &mut self.script {
+                        script.waiting = Some((index, command, step.frames.unwrap_or(1)));
+                    }
+                }
+            }
+        }
+    }
+}
+
+impl ApplicationHandler<FrameReady> for App {
+    fn resumed(&mut self, event_loop: &ActiveEventLoop) {
+        if self.window.is_some() {
+            return;
+        }
+        let attributes = Window::default_attributes()
+            .with_title(format!("sylva view: {}", self.label))
+            .with_inner_size(PhysicalSize::new(self.size.0, self.size.1))
+            .with_resizable(false);
+        let window = match event_loop.create_window(attributes) {
+            Ok(window) => Rc::new(window),
+            Err(e) => return self.fail(event_loop, anyhow::anyhow!("cannot open a window: {e}")),
+        };
+        let surface = softbuffer::Context::new(window.clone())
+            .and_then(|context| softbuffer::Surface::new(&context, window.clone()));
+        match surface {
+            Ok(surface) => self.surface = Some(surface),
+            Err(e) => {
+                return self.fail(
+                    event_loop,
+                    anyhow::anyhow!("cannot draw to the window: {e}"),
+                );
+            }
+        }
+        self.window = Some(window);
+    }
+
+    fn user_event(&mut self, event_loop: &ActiveEventLoop, _: FrameReady) {
+        if let Some(image) = self.live.take_latest() {
+            self.shown = Some(image);
+            self.update_title();
+            if let Some(window) = &self.window {
+                window.request_redraw();
+            }
+            self.advance_script(event_loop);
+        }
+    }
+
+    fn window_event(&mut self, event_loop: &ActiveEventLoop, _: WindowId, event: WindowEvent) {
+        match event {
+            WindowEvent::CloseRequested => event_loop.exit(),
+            WindowEvent::KeyboardInput { event, .. } => {
+                let PhysicalKey::Code(code) = event.physical_key else {
+                    return;
+                };
+                match (code, event.state) {
+                    (KeyCode::Escape, ElementState::Pressed) => event_loop.exit(),
+                    (KeyCode::KeyP, ElementState::Pressed) if !event.repeat => {
+                        self.screenshots += 1;
+                        let path = PathBuf::from(format!("sylva-view-{:03}.png", self.screenshots));
+                        if let Err(e) = self.screenshot(&path) {
+                            eprintln!("warning: {e:#}");
+                        }
+                    }
+                    (code, ElementState::Pressed) => {
+                        self.held.insert(code);
+                    }
+                    (code, ElementState::Released) => {
+                        self.held.remove(&code);
+                    }
+                }
+            }
+            WindowEvent::Focused(false) => self.held.clear(),
+            WindowEvent::MouseInput {
+                state,
+                button: MouseButton::Left,
+                ..
+            } => self.dragging = state == ElementState::Pressed,
+            WindowEvent::CursorMoved { position, .. } => {
+                if self.dragging
+                    && let Some(last) = self.cursor
+                {
+                    self.look += glam::Vec2::new(
+                        (position.x - last.x) as f32,
+                        -(position.y - last.y) as f32,
+                    ) * LOOK_PER_PIXEL;
+                }
+                self.cursor = Some(position);
+            }
+            WindowEvent::MouseWheel { delta, .. } => {
+                self.scroll += match delta {
+                    MouseScrollDelta::LineDelta(_, y) => y,
+                    MouseScrollDelta::PixelDelta(p) => (p.y / 40.0) as f32,
+                };
+            }
+            WindowEvent::RedrawRequested => {
+                if let Err(e) = self.present() {
+                    self.fail(event_loop, e);
+                }
+            }
+            _ => {}
+        }
+    }
+
+    fn about_to_wait(&mut self, event_loop: &ActiveEventLoop) {
+        let now = Instant::now();
+        let seconds = now.duration_since(self.last_step).as_secs_f32().min(0.1);
+        self.last_step = now;
+        let input = self.input();
+        (self.look, self.scroll) = (glam::Vec2::ZERO, 0.0);
+        let scrolled = input.speed_steps != 0.0;
+        if self.fly.step(&input, seconds) {
+            let pose = self.fly.transform();
+            if self.live.send(LiveCommand::Pose(pose)).is_none() {
+                return self.fail(event_loop, anyhow::anyhow!("the renderer stopped"));
+            }
+        }
+        if scrolled {
+            self.update_title();
+        }
+        // Keys held: keep stepping at about 60 Hz; otherwise sleep until an event.
+        event_loop.set_control_flow(if self.held.is_empty() {
+            ControlFlow::Wait
+        } else {
+            ControlFlow::WaitUntil(now + Duration::from_millis(16))
+        });
+    }
+}
+
+impl App {
+    /// Copies the latest frame into the window (black where the window is larger).
+    fn present(&mut self) -> Result<()> {
+        let (Some(window), Some(surface)) = (&self.window, &mut self.surface) else {
+            return Ok(());
+        };
+        let size = window.inner_size();
+        let (Some(w), Some(h)) = (NonZeroU32::new(size.width), NonZeroU32::new(size.height)) else {
+            return Ok(());
+        };
+        surface
+            .resize(w, h)
+            .map_err(|e| anyhow::anyhow!("cannot size the window's buffer: {e}"))?;
+        let mut buffer = surface
+            .buffer_mut()
+            .map_err(|e| anyhow::anyhow!("cannot draw to the window: {e}"))?;
+        buffer.fill(0);
+        if let Some(shown) = &self.shown {
+            let columns = (shown.width as usize).min(size.width as usize);
+            for row in 0..(shown.height as usize).min(size.height as usize) {
+                let src = row * shown.width as usize;
+                let dst = row * size.width as usize;
+                buffer[dst..dst + columns].copy_from_slice(&shown.pixels[src..src + columns]);
+            }
+        }
+        buffer
+            .present()
+            .map_err(|e| anyhow::anyhow!("cannot show the frame: {e}"))?;
+        Ok(())
+    }
+}

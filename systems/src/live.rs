@@ -1,0 +1,221 @@
+//! A progressive render on a thread of its own, for a window: the world and its
+//! schedule live on that thread, camera moves arrive as commands, and each finished
+//! frame is published as display pixels. The window never waits for a frame; it shows
+//! the latest one. Accumulation restarts when the camera moves (the `Accumulate` stage
+//! sees the changed transform) and stops at a frame limit, after which the thread sleeps
+//! until the next command.
+
+use crate::progressive::{StopAt, refine};
+use crate::{RenderStats, frame_schedule, shown_film};
+use bevy_ecs::prelude::*;
+use std::sync::mpsc::{self, Receiver, RecvTimeoutError, Sender};
+use std::sync::{Arc, Mutex, PoisonError};
+use std::thread::JoinHandle;
+use std::time::Duration;
+use sylva_engine::camera::Camera;
+use sylva_engine::components::Transform;
+use sylva_engine::discontinuity::FilteredImage;
+use sylva_engine::film::Film;
+
+/// A frame ready to be shown.
+#[derive(Clone, Debug, Default, PartialEq)]
+pub struct ShownImage {
+    /// Width in pixels.
+    pub width: u32,
+    /// Height in pixels.
+    pub height: u32,
+    /// Tone-mapped sRGB pixels as `0x00RRGGBB`, row by row from the top.
+    pub pixels: Vec<u32>,
+    /// Frames accumulated in it.
+    pub frames: u32,
+    /// Rendering time of the latest frame.
+    pub frame_time: Duration,
+    /// Rays per second of the latest frame.
+    pub rays_per_second: f64,
+    /// Sequence number of the last command applied before this frame was rendered (see
+    /// [`LiveRender::send`]): a frame shows a command's effect when this has reached the
+    /// command's number.
+    pub applied: u64,
+}
+
+impl ShownImage {
+    /// Tone-maps `film` (or its filtered image, when that is current) at `exposure`.
+    pub fn of_film(film: &Film, filtered: Option<&FilteredImage>, exposure: f32) -> Self {
+        let shown = shown_film(film, filtered);
+        let bytes = shown.to_srgba8(exposure);
+        let pixels = bytes
+            .chunks_exact(4)
+            .map(|p| (u32::from(p[0]) << 16) | (u32::from(p[1]) << 8) | u32::from(p[2]))
+            .collect();
+        Self {
+            width: film.width(),
+            height: film.height(),
+            pixels,
+            frames: film.frames(),
+            ..Self::default()
+        }
+    }
+}
+
+/// What the window asks of the render thread.
+#[derive(Clone)]
+pub enum LiveCommand {
+    /// Place the camera (restarts accumulation).
+    Pose(Transform),
+    /// Run a closure on the world between frames (edits, quality changes); changes it
+    /// makes restart accumulation as any ECS change does.
+    Edit(Arc<dyn Fn(&mut World) + Send + Sync>),
+    /// Stop rendering and hand the world back.
+    Quit,
+}
+
+/// The render thread's handle: commands in, the latest frame out.
+pub struct LiveRender {
+    commands: Sender<(u64, LiveCommand)>,
+    sent: u64,
+    latest: Arc<Mutex<Option<ShownImage>>>,
+    thread: Option<JoinHandle<World>>,
+}
+
+impl LiveRender {
+    /// Starts rendering `camera` of `world` (set up as for [`refine`]) on a new thread;
+    /// `frame_ready` is called from that thread after each frame is published (a
+    /// window's wake-up). Accumulation stops at `max_frames` until the next command.
+    pub fn start(
+        world: World,
+        camera: Entity,
+        max_frames: u32,
+        frame_ready: impl Fn() + Send + 'static,
+    ) -> std::io::Result<Self> {
+        let (commands, inbox) = mpsc::channel();
+        let latest = Arc::new(Mutex::new(None));
+        let published = latest.clone();
+        let thread = std::thread::Builder::new()
+            .name("sylva-live".into())
+            .spawn(move || {
+                run(
+                    world,
+                    camera,
+                    max_frames.max(1),
+                    inbox,
+                    &published,
+                    frame_ready,
+                )
+            })?;
+        Ok(Self {
+            commands,
+            sent: 0,
+            latest,
+            thread: Some(thread),
+        })
+    }
+
+    /// Sends a command and returns its sequence number (1, 2, …), or `None` when the
+    /// render thread has ended.
+    pub fn send(&mut self, command: LiveCommand) -> Option<u64> {
+        self.sent += 1;
+        self.commands.send((self.sent, command)).ok()?;
+        Some(self.sent)
+    }
+
+    /// The sequence number of the last command sent (0 before the first).
+    pub fn last_sent(&self) -> u64 {
+        self.sent
+    }
+
+    /// The newest frame not yet taken, if any.
+    pub fn take_latest(&self) -> Option<ShownImage> {
+        self.latest
+            .lock()
+            .unwrap_or_else(PoisonError::into_inner)
+            .take()
+    }
+
+    /// Stops the thread after the frame in progress and returns the world; `None` when
+    /// the thread panicked.
+    pub fn stop(mut self) -> Option<World> {
+        let _ = self.commands.send((u64::MAX, LiveCommand::Quit));
+        self.thread.take().and_then(|t| t.join().ok())
+    }
+}
+
+impl Drop for LiveRender {
+    fn drop(&mut self) {
+        if let Some(thread) = self.thread.take() {
+            let _ = self.commands.send((u64::MAX, LiveCommand::Quit));
+            let _ = thread.join();
+        }
+    }
+}
+
+/// Applies one command; false on `Quit`.
+fn apply(world: &mut World, camera: Entity, command: LiveCommand) -> bool {
+    match command {
+        LiveCommand::Pose(pose) => {
+            if let Some(mut transform) = world.get_mut::<Transform>(camera)
+                && *transform != pose
+            {
+                *transform = pose;
+            }
+            true
+        }
+        LiveCommand::Edit(edit) => {
+            edit(world);
+            true
+        }
+        LiveCommand::Quit => false,
+    }
+}
+
+/// The render thread: commands, one frame, publish; asleep at `max_frames`.
+fn run(
+    mut world: World,
+    camera: Entity,
+    max_frames: u32,
+    inbox: Receiver<(u64, LiveCommand)>,
+    published: &Mutex<Option<ShownImage>>,
+    frame_ready: impl Fn(),
+) -> World {
+    let mut schedule = frame_schedule();
+    let mut applied = 0;
+    loop {
+        let converged = world.get::<Film>(camera).map_or(0, Film::frames) >= max_frames;
+        // Idle when converged: wait for a command (checking now and then that the
+        // window is still there); otherwise take whatever has arrived.
+        let first = if converged {
+            match inbox.recv_timeout(Duration::from_millis(250)) {
+                Ok(command) => Some(command),
+                Err(RecvTimeoutError::Timeout) => continue,
+                Err(RecvTimeoutError::Disconnected) => return world,
+            }
+        } else {
+            None
+        };
+        for (number, command) in first.into_iter().chain(inbox.try_iter()) {
+            if !apply(&mut world, camera, command) {
+                return world;
+            }
+            applied = number;
+        }
+        // One frame, whether or not it restarted the film.
+        refine(
+            &mut world,
+            &mut schedule,
+            camera,
+            &StopAt::default(),
+            |_, _| crate::progressive::Flow::Stop,
+        );
+        let Some(film) = world.get::<Film>(camera) else {
+            return world;
+        };
+        let exposure = world.get::<Camera>(camera).map_or(0.0, |c| c.exposure);
+        let mut image = ShownImage::of_film(film, world.get::<FilteredImage>(camera), exposure);
+        let stats = world.resource::<RenderStats>();
+        image.frame_time = stats.last_render;
+        image.applied = applied;
+        image.rays_per_second =
+            stats.last_frame.rays() as f64 / stats.last_render.as_secs_f64().max(1e-9);
+        *published.lock().unwrap_or_else(PoisonError::into_inner) = Some(image);
+        frame_ready();
+    }
+}

@@ -1,0 +1,280 @@
+//! Walkthrough camera control: held movement keys, mouse look and a speed setting turned
+//! into the camera's [`Transform`], frame-rate independent (the window code only
+//! translates its events into a [`FlyInput`]); and scripted walkthroughs, the replayable
+//! camera stops that tests and benchmarks fly.
+
+use glam::{EulerRot, Quat, Vec2, Vec3};
+use sylva_engine::components::Transform;
+
+/// Steepest look up or down, short of straight (where yaw is undefined).
+const MAX_PITCH: f32 = 1.55;
+
+/// Factor one scroll step changes the speed by.
+pub const SPEED_STEP: f32 = 1.25;
+
+/// A first-person camera: position, heading and pitch, and how fast it flies.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct FlyCamera {
+    /// Where the camera stands.
+    pub position: Vec3,
+    /// Heading in radians around +Y (0 looks along −Z).
+    pub yaw: f32,
+    /// Radians above the horizon.
+    pub pitch: f32,
+    /// Metres per second at full key travel.
+    pub speed: f32,
+}
+
+/// What the user asks of the camera over one step.
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
+pub struct FlyInput {
+    /// Forward (+) or back (−), −1 ..= 1.
+    pub forward: f32,
+    /// Right (+) or left (−), −1 ..= 1.
+    pub right: f32,
+    /// Up (+) or down (−) along world +Y, −1 ..= 1.
+    pub up: f32,
+    /// Look change in radians: x turns right, y tilts up.
+    pub look: Vec2,
+    /// Speed steps (scroll): each multiplies the speed by [`SPEED_STEP`].
+    pub speed_steps: f32,
+}
+
+impl FlyInput {
+    /// True when the input moves or turns the camera.
+    pub fn moves(&self) -> bool {
+        self.forward != 0.0 || self.right != 0.0 || self.up != 0.0 || self.look != Vec2::ZERO
+    }
+}
+
+impl FlyCamera {
+    /// The camera of `transform` (its roll dropped: a walkthrough keeps the horizon
+    /// level), flying at `speed` metres per second.
+    pub fn from_transform(transform: &Transform, speed: f32) -> Self {
+        let forward = transform.rotation * -Vec3::Z;
+        let pitch = forward
+            .y
+            .clamp(-1.0, 1.0)
+            .asin()
+            .clamp(-MAX_PITCH, MAX_PITCH);
+        let yaw = (-forward.x).atan2(-forward.z);
+        Self {
+            position: transform.translation,
+            yaw,
+            pitch,
+            speed,
+        }
+    }
+
+    /// The camera's orientation: yaw about +Y, then pitch about the camera's x axis.
+    pub fn rotation(&self) -> Quat {
+        Quat::from_euler(EulerRot::YXZ, self.yaw, self.pitch, 0.0)
+    }
+
+    /// Where the camera stands and looks, as a [`Transform`].
+    pub fn transform(&self) -> Transform {
+        Transform {
+            translation: self.position,
+            rotation: self.rotation(),
+            scale: Vec3::ONE,
+        }
+    }
+
+    /// Applies `input` held for `seconds`; returns whether the camera moved or turned.
+    pub fn step(&mut self, input: &FlyInput, seconds: f32) -> bool {
+        if input.speed_steps.is_finite() && input.speed_steps != 0.0 {
+            self.speed = (self.speed * SPEED_STEP.powf(input.speed_steps)).clamp(0.01, 1.0e5);
+        }
+        if !input.moves() || !seconds.is_finite() || seconds <= 0.0 {
+            return false;
+        }
+        self.yaw -= input.look.x;
+        self.pitch = (self.pitch + input.look.y).clamp(-MAX_PITCH, MAX_PITCH);
+        // Keys move along the ground's heading, as walking does; up and down are world Y.
+        let heading = Quat::from_rotation_y(self.yaw);
+        let (ahead, right) = (heading * -Vec3::Z, heading * Vec3::X);
+        let clamp = |v: f32| v.clamp(-1.0, 1.0);
+        let travel =
+            ahead * clamp(input.forward) + right * clamp(input.right) + Vec3::Y * clamp(input.up);
+        self.position += travel * self.speed * seconds;
+        true
+    }
+}
+
+/// One stop of a scripted walkthrough: where to stand, how long to refine, what to save.
+#[derive(Clone, Debug, Default, PartialEq, serde::Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct ScriptStep {
+    /// Where the camera moves to (it keeps its orientation without `look_at`).
+    pub position: Option<[f32; 3]>,
+    /// The point the camera turns to.
+    pub look_at: Option<[f32; 3]>,
+    /// Wait until the shown image holds this many accumulated frames (default 1).
+    pub frames: Option<u32>,
+    /// Save the shown image (PNG) once the frames are there.
+    pub screenshot: Option<std::path::PathBuf>,
+    /// End the walkthrough after this step.
+    #[serde(default)]
+    pub quit: bool,
+}
+
+/// A scripted walkthrough: steps run in order, each after the previous one's frames.
+#[derive(Clone, Debug, Default, PartialEq, serde::Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct WalkthroughScript {
+    /// The stops.
+    #[serde(default, rename = "step")]
+    pub steps: Vec<ScriptStep>,
+}
+
+impl WalkthroughScript {
+    /// Parses a script's TOML (`[[step]]` tables); errors name the line and the key.
+    pub fn parse(text: &str) -> Result<Self, String> {
+        let script: Self = toml::from_str(text).map_err(|e| e.to_string())?;
+        for (i, step) in script.steps.iter().enumerate() {
+            let finite = |v: &Option<[f32; 3]>| v.is_none_or(|v| v.iter().all(|c| c.is_finite()));
+            if !finite(&step.position) || !finite(&step.look_at) {
+                return Err(format!(
+                    "step {}: coordinates must be finite numbers",
+                    i + 1
+                ));
+            }
+            if step.frames == Some(0) {
+                return Err(format!("step {}: frames must be at least 1", i + 1));
+            }
+        }
+        Ok(script)
+    }
+
+    /// The camera transform step `step` asks for, starting from `current`: moved to its
+    /// position, turned to its `look_at` (unchanged where it says nothing).
+    pub fn pose(step: &ScriptStep, current: &Transform) -> Transform {
+        let eye = step.position.map_or(current.translation, Vec3::from);
+        match step.look_at.map(Vec3::from) {
+            Some(target) if (target - eye).length_squared() > 0.0 => {
+                Transform::looking_at(eye, target, Vec3::Y)
+            }
+            _ => Transform {
+                translation: eye,
+                ..*current
+            },
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn close(a: Vec3, b: Vec3) -> bool {
+        (a - b).length() < 1e-4
+    }
+
+    #[test]
+    fn scripts_parse_and_bad_ones_say_where() {
+        let script = WalkthroughScript::parse(
+            "[[step]]\nposition = [0, 2, 10]\nlook_at = [0, 1, 0]\nframes = 4\nscreenshot = \"a.png\"\n\n[[step]]\nquit = true\n",
+        )
+        .unwrap();
+        assert_eq!(script.steps.len(), 2);
+        assert_eq!(script.steps[0].frames, Some(4));
+        assert!(script.steps[1].quit);
+        let pose = WalkthroughScript::pose(&script.steps[0], &Transform::IDENTITY);
+        assert!(close(pose.translation, Vec3::new(0.0, 2.0, 10.0)));
+        assert!(close(
+            pose.rotation * -Vec3::Z,
+            Vec3::new(0.0, -1.0, -10.0).normalize()
+        ));
+        let unknown =
+            WalkthroughScript::parse("[[step]]\nposition = [0, 2, 10]\nzoom = 2\n").unwrap_err();
+        assert!(
+            unknown.contains("zoom") && unknown.contains("line 3"),
+            "{unknown}"
+        );
+        let zero = WalkthroughScript::parse("[[step]]\nframes = 0\n").unwrap_err();
+        assert!(zero.contains("step 1"), "{zero}");
+        let nan = WalkthroughScript::parse("[[step]]\nposition = [nan, 0, 0]\n").unwrap_err();
+        assert!(nan.contains("finite"), "{nan}");
+    }
+
+    #[test]
+    fn a_transform_comes_back_as_it_went_in_without_roll() {
+        let eye = Vec3::new(3.0, 2.0, 5.0);
+        for target in [
+            Vec3::new(0.0, 0.0, 0.0),
+            Vec3::new(10.0, 4.0, 5.0),
+            Vec3::new(3.0, -1.0, 20.0),
+        ] {
+            let looking = Transform::looking_at(eye, target, Vec3::Y);
+            let fly = FlyCamera::from_transform(&looking, 1.0);
+            let back = fly.transform();
+            assert!(close(back.translation, eye));
+            let forward = (target - eye).normalize();
+            assert!(close(back.rotation * -Vec3::Z, forward), "{target}");
+            // The horizon stays level: the camera's x axis has no vertical part.
+            assert!((back.rotation * Vec3::X).y.abs() < 1e-5);
+        }
+    }
+
+    #[test]
+    fn forward_moves_along_the_heading_at_the_speed_for_any_step_size() {
+        let start = FlyCamera::from_transform(
+            &Transform::looking_at(Vec3::ZERO, Vec3::new(1.0, 0.5, 0.0), Vec3::Y),
+            4.0,
+        );
+        let input = FlyInput {
+            forward: 1.0,
+            ..FlyInput::default()
+        };
+        let (mut one, mut many) = (start, start);
+        assert!(one.step(&input, 1.0));
+        for _ in 0..10 {
+            many.step(&input, 0.1);
+        }
+        // Along +X (the heading; the pitch does not lift the walk), 4 m in one second.
+        assert!(
+            close(one.position, Vec3::new(4.0, 0.0, 0.0)),
+            "{}",
+            one.position
+        );
+        assert!(close(many.position, one.position));
+    }
+
+    #[test]
+    fn looking_turns_and_pitch_stops_short_of_straight_up() {
+        let mut fly = FlyCamera::from_transform(&Transform::IDENTITY, 1.0);
+        fly.step(
+            &FlyInput {
+                look: Vec2::new(std::f32::consts::FRAC_PI_2, 0.0),
+                ..FlyInput::default()
+            },
+            0.016,
+        );
+        // A quarter turn right: looking along +X.
+        assert!(close(fly.rotation() * -Vec3::Z, Vec3::X));
+        fly.step(
+            &FlyInput {
+                look: Vec2::new(0.0, 10.0),
+                ..FlyInput::default()
+            },
+            0.016,
+        );
+        assert_eq!(fly.pitch, MAX_PITCH);
+    }
+
+    #[test]
+    fn scrolling_scales_the_speed_and_idle_input_does_not_move() {
+        let mut fly = FlyCamera::from_transform(&Transform::IDENTITY, 2.0);
+        let moved = fly.step(
+            &FlyInput {
+                speed_steps: 2.0,
+                ..FlyInput::default()
+            },
+            0.5,
+        );
+        assert!(!moved);
+        assert!((fly.speed - 2.0 * SPEED_STEP * SPEED_STEP).abs() < 1e-5);
+        assert_eq!(fly.position, Vec3::ZERO);
+        assert!(!fly.step(&FlyInput::default(), f32::NAN));
+    }
+}

@@ -1,0 +1,143 @@
+//! `sylva view` in a real window on a real X server (Xvfb): a scripted walkthrough saves
+//! what the window shows, which must be what `sylva render` makes of the same view, and
+//! change when the camera moves. CI installs Xvfb (`.ci/run`); without `xvfb-run` these
+//! tests open the window on `DISPLAY`, and without either they fail and say what to
+//! install.
+#![cfg(feature = "view")]
+
+use std::path::{Path, PathBuf};
+use std::process::{Command, Output};
+
+fn temp_dir(name: &str) -> PathBuf {
+    let dir = std::env::temp_dir().join(format!("sylva-view-{name}-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).unwrap();
+    dir
+}
+
+/// Runs `sylva view ARGS` under `xvfb-run` (a private X server for the run), or on the
+/// desktop's display when there is no Xvfb.
+fn view_on_xvfb(args: &[&str]) -> Output {
+    if Command::new("xvfb-run").arg("--help").output().is_ok() {
+        return Command::new("xvfb-run")
+            .args(["-a", "-s", "-screen 0 640x480x24"])
+            .arg(env!("CARGO_BIN_EXE_sylva"))
+            .arg("view")
+            .args(args)
+            .output()
+            .expect("xvfb-run runs");
+    }
+    assert!(
+        std::env::var_os("DISPLAY").is_some(),
+        "the window tests need an X server: install Xvfb \
+         (apt-get install xvfb xauth libx11-xcb1 libxcursor1 libxi6 libxrandr2 libxkbcommon-x11-0) \
+         or run them in a desktop session"
+    );
+    Command::new(env!("CARGO_BIN_EXE_sylva"))
+        .arg("view")
+        .args(args)
+        .output()
+        .expect("the binary runs")
+}
+
+/// RGB bytes and size of a PNG.
+fn rgb(path: &Path) -> (Vec<u8>, u32, u32) {
+    let decoder = png::Decoder::new(std::io::BufReader::new(
+        std::fs::File::open(path).unwrap_or_else(|e| panic!("{}: {e}", path.display())),
+    ));
+    let mut reader = decoder.read_info().unwrap();
+    let mut buffer = vec![0; reader.output_buffer_size().unwrap()];
+    let info = reader.next_frame(&mut buffer).unwrap();
+    let channels = info.color_type.samples();
+    let pixels = buffer[..info.buffer_size()]
+        .chunks_exact(channels)
+        .flat_map(|p| [p[0], p[1], p[2]])
+        .collect();
+    (pixels, info.width, info.height)
+}
+
+#[test]
+fn a_scripted_walkthrough_shows_what_render_makes_and_changes_when_the_camera_moves() {
+    let dir = temp_dir("walk");
+    let (first, second) = (dir.join("start.png"), dir.join("moved.png"));
+    let script = dir.join("walk.toml");
+    std::fs::write(
+        &script,
+        format!(
+            "[[step]]\nframes = 2\nscreenshot = {:?}\n\n[[step]]\nposition = [5, 3, 20]\nlook_at = [0, 1, 0]\nframes = 1\nscreenshot = {:?}\nquit = true\n",
+            first.to_str().unwrap(),
+            second.to_str().unwrap()
+        ),
+    )
+    .unwrap();
+    let run = view_on_xvfb(&[
+        "--width",
+        "96",
+        "--height",
+        "72",
+        "--script",
+        script.to_str().unwrap(),
+    ]);
+    assert!(
+        run.status.success(),
+        "{}",
+        String::from_utf8_lossy(&run.stderr)
+    );
+
+    // The window's first view after two frames is the interactive render's image.
+    let rendered = dir.join("render.png");
+    let render = Command::new(env!("CARGO_BIN_EXE_sylva"))
+        .args(["render", "--preset", "interactive", "--frames", "2"])
+        .args(["--width", "96", "--height", "72", "--quiet", "--out"])
+        .arg(&rendered)
+        .output()
+        .unwrap();
+    assert!(render.status.success());
+    let (shown, w, h) = rgb(&first);
+    assert_eq!((w, h), (96, 72));
+    let expected = rgb(&rendered).0;
+    let differing = shown.iter().zip(&expected).filter(|(a, b)| a != b).count();
+    assert_eq!(differing, 0, "the window shows another image than render");
+
+    // Not blank, and the moved camera sees something else.
+    let spread = shown.iter().max().unwrap() - shown.iter().min().unwrap();
+    assert!(spread > 64, "a flat image (spread {spread})");
+    let (moved, ..) = rgb(&second);
+    let changed = shown
+        .chunks_exact(3)
+        .zip(moved.chunks_exact(3))
+        .filter(|(a, b)| a != b)
+        .count();
+    assert!(changed > 96 * 72 / 2, "only {changed} pixels changed");
+    std::fs::remove_dir_all(&dir).ok();
+}
+
+#[test]
+fn without_a_display_view_says_so_and_bad_scripts_name_their_line() {
+    let run = Command::new(env!("CARGO_BIN_EXE_sylva"))
+        .args(["view", "--width", "32", "--height", "24"])
+        .env_remove("DISPLAY")
+        .output()
+        .unwrap();
+    let stderr = String::from_utf8_lossy(&run.stderr);
+    assert_eq!(run.status.code(), Some(1), "{stderr}");
+    assert!(
+        stderr.contains("no display") && stderr.contains("sylva render"),
+        "{stderr}"
+    );
+
+    let dir = temp_dir("bad");
+    let script = dir.join("bad.toml");
+    std::fs::write(&script, "[[step]]\nframes = 2\nspin = true\n").unwrap();
+    let run = Command::new(env!("CARGO_BIN_EXE_sylva"))
+        .args(["view", "--script"])
+        .arg(&script)
+        .output()
+        .unwrap();
+    let stderr = String::from_utf8_lossy(&run.stderr);
+    assert_eq!(run.status.code(), Some(1), "{stderr}");
+    assert!(
+        stderr.contains("bad.toml") && stderr.contains("spin") && stderr.contains("line 3"),
+        "{stderr}"
+    );
+    std::fs::remove_dir_all(&dir).ok();
+}
