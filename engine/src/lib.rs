@@ -40,6 +40,9 @@ pub use light::{DirectionalLight, LightSet, SkyLight};
 pub use math::{Aabb, Ray};
 pub use mesh::TriangleMesh;
 pub use opacity::OpacityMaps;
-pub use render::{FramePlan, RenderParams, RenderScene, SampleShading, render_frame, render_tile};
+pub use render::{
+    FramePlan, RenderParams, RenderScene, SampleShading, render_frame, render_frame_unless,
+    render_tile,
+};
 pub use shading::{Shader, ShaderId, ShaderTable, Texture};
 pub use tlas::{InstanceDesc, TopLevel};

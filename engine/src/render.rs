@@ -872,18 +872,38 @@ pub fn render_frame(
     frame: u32,
     on_tile: &(dyn Fn(&Tile) + Sync),
 ) -> FrameBuffer {
+    render_frame_unless(scene, view, params, frame, on_tile, None)
+        .expect("a frame without a cancel flag completes")
+}
+
+/// [`render_frame`] that gives up when `cancel` is set: tiles not yet started are
+/// skipped and `None` is returned (a window's input cancels a frame that would only show
+/// the old view).
+pub fn render_frame_unless(
+    scene: &RenderScene,
+    view: &CameraView,
+    params: &RenderParams,
+    frame: u32,
+    on_tile: &(dyn Fn(&Tile) + Sync),
+    cancel: Option<&std::sync::atomic::AtomicBool>,
+) -> Option<FrameBuffer> {
+    use std::sync::atomic::Ordering;
+    let cancelled = || cancel.is_some_and(|flag| flag.load(Ordering::Relaxed));
     let tiles = Tile::grid(view.width(), view.height(), params.tile_size);
-    let results: Vec<TileResult> = tiles
+    let results: Vec<Option<TileResult>> = tiles
         .par_iter()
         .map(|&tile| {
+            if cancelled() {
+                return None;
+            }
             let result = render_tile(scene, view, params, tile, frame);
             on_tile(&tile);
-            result
+            Some(result)
         })
         .collect();
     let mut frame_buffer = FrameBuffer::new(view.width(), view.height(), frame);
     for result in &results {
-        frame_buffer.write_tile(result);
+        frame_buffer.write_tile(result.as_ref()?);
     }
-    frame_buffer
+    Some(frame_buffer)
 }

@@ -205,7 +205,16 @@ pub struct RenderStats {
     pub total: TraversalStats,
     /// Wall time summed over every frame.
     pub total_render: Duration,
+    /// Frames given up because [`FrameCancel`] was set (not counted in `frames`).
+    pub cancelled: u64,
 }
+
+/// Set from another thread to give up the frame in progress at its next tile: the
+/// cameras' films and frame buffers stay as they were, and a camera that moved before
+/// it restarts its film with the next complete frame. `render_tiles` clears nothing: the
+/// setter clears the flag before the next frame.
+#[derive(Resource, Clone, Debug, Default)]
+pub struct FrameCancel(pub Option<Arc<std::sync::atomic::AtomicBool>>);
 
 /// Inserts every resource the schedule needs (keeping those already present) and a
 /// render pool of `threads` workers (0 = one per core).
@@ -226,6 +235,7 @@ pub fn init_render_world(
     world.init_resource::<TileProgress>();
     world.init_resource::<TopLevelState>();
     world.init_resource::<RenderStats>();
+    world.init_resource::<FrameCancel>();
     Ok(())
 }
 

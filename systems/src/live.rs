@@ -6,8 +6,9 @@
 //! until the next command.
 
 use crate::progressive::{StopAt, refine};
-use crate::{RenderStats, frame_schedule, shown_film};
+use crate::{FrameCancel, RenderStats, frame_schedule, shown_film};
 use bevy_ecs::prelude::*;
+use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::mpsc::{self, Receiver, RecvTimeoutError, Sender};
 use std::sync::{Arc, Mutex, PoisonError};
 use std::thread::JoinHandle;
@@ -72,6 +73,7 @@ pub enum LiveCommand {
 /// The render thread's handle: commands in, the latest frame out.
 pub struct LiveRender {
     commands: Sender<(u64, LiveCommand)>,
+    cancel: Arc<AtomicBool>,
     sent: u64,
     latest: Arc<Mutex<Option<ShownImage>>>,
     thread: Option<JoinHandle<World>>,
@@ -89,6 +91,10 @@ impl LiveRender {
     ) -> std::io::Result<Self> {
         let (commands, inbox) = mpsc::channel();
         let latest = Arc::new(Mutex::new(None));
+        let cancel = Arc::new(AtomicBool::new(false));
+        let mut world = world;
+        world.insert_resource(FrameCancel(Some(cancel.clone())));
+        let flag = cancel.clone();
         let published = latest.clone();
         let thread = std::thread::Builder::new()
             .name("sylva-live".into())
@@ -97,13 +103,14 @@ impl LiveRender {
                     world,
                     camera,
                     max_frames.max(1),
-                    inbox,
+                    (inbox, &flag),
                     &published,
                     frame_ready,
                 )
             })?;
         Ok(Self {
             commands,
+            cancel,
             sent: 0,
             latest,
             thread: Some(thread),
@@ -115,6 +122,9 @@ impl LiveRender {
     pub fn send(&mut self, command: LiveCommand) -> Option<u64> {
         self.sent += 1;
         self.commands.send((self.sent, command)).ok()?;
+        // The frame in progress would not show what the command changes: give it up at
+        // its next tile.
+        self.cancel.store(true, Ordering::SeqCst);
         Some(self.sent)
     }
 
@@ -135,6 +145,7 @@ impl LiveRender {
     /// the thread panicked.
     pub fn stop(mut self) -> Option<World> {
         let _ = self.commands.send((u64::MAX, LiveCommand::Quit));
+        self.cancel.store(true, Ordering::SeqCst);
         self.thread.take().and_then(|t| t.join().ok())
     }
 }
@@ -143,6 +154,7 @@ impl Drop for LiveRender {
     fn drop(&mut self) {
         if let Some(thread) = self.thread.take() {
             let _ = self.commands.send((u64::MAX, LiveCommand::Quit));
+            self.cancel.store(true, Ordering::SeqCst);
             let _ = thread.join();
         }
     }
@@ -172,7 +184,7 @@ fn run(
     mut world: World,
     camera: Entity,
     max_frames: u32,
-    inbox: Receiver<(u64, LiveCommand)>,
+    (inbox, cancel): (Receiver<(u64, LiveCommand)>, &AtomicBool),
     published: &Mutex<Option<ShownImage>>,
     frame_ready: impl Fn(),
 ) -> World {
@@ -191,20 +203,27 @@ fn run(
         } else {
             None
         };
+        // Cleared before the commands are taken: a command sent after this cancels the
+        // coming frame, which would not show it.
+        cancel.store(false, Ordering::SeqCst);
         for (number, command) in first.into_iter().chain(inbox.try_iter()) {
             if !apply(&mut world, camera, command) {
                 return world;
             }
             applied = number;
         }
-        // One frame, whether or not it restarted the film.
-        refine(
+        // One frame, whether or not it restarted the film; nothing to show when it was
+        // given up.
+        let (_, progress) = refine(
             &mut world,
             &mut schedule,
             camera,
             &StopAt::default(),
             |_, _| crate::progressive::Flow::Stop,
         );
+        if progress.cancelled > 0 {
+            continue;
+        }
         let Some(film) = world.get::<Film>(camera) else {
             return world;
         };

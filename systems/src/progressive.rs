@@ -48,6 +48,9 @@ pub struct Progress {
     /// The last frame started the film again, dropping the frames it held (the scene or
     /// the camera changed).
     pub restarted: bool,
+    /// Frames this run gave up half-way ([`FrameCancel`](crate::FrameCancel)); they are
+    /// not in `rendered`.
+    pub cancelled: u32,
 }
 
 /// What the per-frame callback tells the driver.
@@ -77,13 +80,24 @@ pub fn refine(
         frames: film_frames(world),
         ..Progress::default()
     };
+    let cancelled_frames = |world: &World| {
+        world
+            .get_resource::<crate::RenderStats>()
+            .map_or(0, |s| s.cancelled)
+    };
     loop {
         let start = Instant::now();
+        let cancelled_before = cancelled_frames(world);
         schedule.run(world);
         progress.rendering += start.elapsed();
-        progress.rendered += 1;
         let frames = film_frames(world);
-        progress.restarted = frames <= progress.frames;
+        if cancelled_frames(world) > cancelled_before {
+            progress.cancelled += 1;
+            progress.restarted = false;
+        } else {
+            progress.rendered += 1;
+            progress.restarted = frames <= progress.frames;
+        }
         progress.frames = frames;
         if stop
             .interrupt

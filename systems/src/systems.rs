@@ -1,9 +1,11 @@
 //! The systems of the frame schedule and their run conditions.
 
 use crate::{
-    BuildSettings, RenderPool, RenderSeed, RenderStats, TileProgress, TopLevelState, WorldOrigin,
+    BuildSettings, FrameCancel, RenderPool, RenderSeed, RenderStats, TileProgress, TopLevelState,
+    WorldOrigin,
 };
 use bevy_ecs::prelude::*;
+use std::collections::HashSet;
 use std::time::Instant;
 use sylva_engine::camera::{Camera, CameraView};
 use sylva_engine::components::{Hidden, Instance, Transform};
@@ -14,7 +16,7 @@ use sylva_engine::geometry::GeometryLibrary;
 use sylva_engine::interleave::{LightInterleave, LightSubsets};
 use sylva_engine::light::{DirectionalLight, LightSet, SkyLight};
 use sylva_engine::opacity::OpacityMaps;
-use sylva_engine::render::{FramePlan, RenderParams, RenderScene, render_frame};
+use sylva_engine::render::{FramePlan, RenderParams, RenderScene, render_frame_unless};
 use sylva_engine::sampling::mix64;
 use sylva_engine::shading::{Shader, ShaderTable};
 use sylva_engine::sway::{AnimationClock, RestPose, Sway, Wind};
@@ -365,8 +367,10 @@ pub fn render_tiles(
     seed: Res<RenderSeed>,
     origin: Res<WorldOrigin>,
     progress: Res<TileProgress>,
-    mut cameras: Query<RenderedCamera>,
+    cancel: Res<FrameCancel>,
+    mut cameras: Query<(Entity, RenderedCamera)>,
     mut stats: ResMut<RenderStats>,
+    mut restart_owed: Local<HashSet<Entity>>,
 ) {
     let _span = tracing::info_span!("render_tiles").entered();
     let start = Instant::now();
@@ -387,18 +391,47 @@ pub fn render_tiles(
         }
     };
     let mut frame_stats = sylva_engine::bvh::TraversalStats::default();
-    for (camera, transform, plan, film, mut frame) in &mut cameras {
+    let mut cancelled = false;
+    for (entity, (camera, transform, plan, film, mut frame)) in &mut cameras {
         let resized = film.width() != camera.width || film.height() != camera.height;
         // A film loaded from a checkpoint continues its frame sequence even though the
-        // world around it is new.
-        let changed =
-            scene_changed || camera.is_changed() || transform.is_changed() || plan.is_changed();
+        // world around it is new. A change seen by a cancelled frame is still owed.
+        let changed = scene_changed
+            || camera.is_changed()
+            || transform.is_changed()
+            || plan.is_changed()
+            || restart_owed.contains(&entity);
         let restart = resized || (changed && !film.awaiting_resume());
         let frame_index = if restart { 0 } else { film.frames() };
         let view = CameraView::new(&camera, &origin.relative(transform.to_affine()));
         let params = RenderParams::for_camera(&camera, seed.0).with_plan(&plan);
-        *frame = pool.install(|| render_frame(&scene, &view, &params, frame_index, &on_tile));
-        frame_stats.add(&frame.stats);
+        let rendered = pool.install(|| {
+            render_frame_unless(
+                &scene,
+                &view,
+                &params,
+                frame_index,
+                &on_tile,
+                cancel.0.as_deref(),
+            )
+        });
+        match rendered {
+            Some(rendered) => {
+                *frame = rendered;
+                frame_stats.add(&frame.stats);
+                restart_owed.remove(&entity);
+            }
+            None => {
+                cancelled = true;
+                if restart {
+                    restart_owed.insert(entity);
+                }
+            }
+        }
+    }
+    if cancelled {
+        stats.cancelled += 1;
+        return;
     }
     stats.frames += 1;
     stats.last_frame = frame_stats;

@@ -637,3 +637,39 @@ fn the_live_render_shows_what_a_plain_render_makes_and_restarts_on_a_move() {
     let world = live.stop().expect("the render thread ends cleanly");
     assert_eq!(world.get::<Film>(w.camera).unwrap().frames(), 3);
 }
+
+#[test]
+fn a_cancelled_frame_leaves_the_film_and_the_next_one_restarts_it_after_a_move() {
+    use std::sync::atomic::{AtomicBool, Ordering};
+    let mut w = test_world(2);
+    w.run();
+    w.run();
+    let before = pixels(&w);
+    let flag = Arc::new(AtomicBool::new(true));
+    w.world.insert_resource(FrameCancel(Some(flag.clone())));
+    let moved = Transform::looking_at(Vec3::new(-2.0, 2.0, 9.0), Vec3::ZERO, Vec3::Y);
+    *w.world.get_mut::<Transform>(w.camera).unwrap() = moved;
+    let camera = w.camera;
+    let (_, progress) = refine(
+        &mut w.world,
+        &mut w.schedule,
+        camera,
+        &StopAt::default(),
+        |_, _| Flow::Stop,
+    );
+    assert_eq!((progress.rendered, progress.cancelled), (0, 1));
+    assert!(!progress.restarted);
+    assert_eq!(w.film().frames(), 2);
+    assert_eq!(pixels(&w), before, "a cancelled frame changed the film");
+    assert_eq!(w.world.resource::<RenderStats>().cancelled, 1);
+
+    // The move is still owed: the next complete frame starts the film again, as a
+    // world that never saw the cancelled frame does.
+    flag.store(false, Ordering::SeqCst);
+    w.run();
+    assert_eq!(w.film().frames(), 1);
+    let mut fresh = test_world(2);
+    *fresh.world.get_mut::<Transform>(fresh.camera).unwrap() = moved;
+    fresh.run();
+    assert_eq!(pixels(&w), pixels(&fresh));
+}
