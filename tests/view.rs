@@ -141,3 +141,58 @@ fn without_a_display_view_says_so_and_bad_scripts_name_their_line() {
     );
     std::fs::remove_dir_all(&dir).ok();
 }
+
+#[test]
+fn edits_in_the_window_show_up_and_undo_restores_the_image_bit_for_bit() {
+    let dir = temp_dir("edit");
+    let shot = |i: usize| dir.join(format!("e{i}.png"));
+    // The default meadow at 96×72: pixel (63, 20) shows the big tree's crown.
+    let steps = [
+        "frames = 2",
+        "select = [63, 20]\ndelete = true\nframes = 2",
+        "undo = true\nframes = 2",
+        "insert = [48, 50]\nframes = 2",
+        "undo = true\nframes = 2\nquit = true",
+    ];
+    let script: String = steps
+        .iter()
+        .enumerate()
+        .map(|(i, step)| {
+            format!(
+                "[[step]]\n{step}\nscreenshot = {:?}\n\n",
+                shot(i).to_str().unwrap()
+            )
+        })
+        .collect();
+    let path = dir.join("edit.toml");
+    std::fs::write(&path, script).unwrap();
+    let run = view_on_xvfb(&[
+        "--width",
+        "96",
+        "--height",
+        "72",
+        "--script",
+        path.to_str().unwrap(),
+    ]);
+    assert!(
+        run.status.success(),
+        "{}",
+        String::from_utf8_lossy(&run.stderr)
+    );
+    let images: Vec<Vec<u8>> = (0..steps.len()).map(|i| rgb(&shot(i)).0).collect();
+    let changed = |a: &[u8], b: &[u8]| {
+        a.chunks_exact(3)
+            .zip(b.chunks_exact(3))
+            .filter(|(p, q)| p != q)
+            .count()
+    };
+    let deleted = changed(&images[0], &images[1]);
+    assert!(deleted > 100, "deleting the tree changed {deleted} pixels");
+    let after_undo = changed(&images[0], &images[2]);
+    assert_eq!(after_undo, 0, "undoing the delete left {after_undo} pixels changed");
+    let inserted = changed(&images[0], &images[3]);
+    assert!(inserted > 0, "the inserted plant is not seen");
+    let after_undo = changed(&images[0], &images[4]);
+    assert_eq!(after_undo, 0, "undoing the insert left {after_undo} pixels changed");
+    std::fs::remove_dir_all(&dir).ok();
+}

@@ -7,6 +7,7 @@
 //! [`plant_at`] / [`move_plant`] place plants one by one afterwards. Same seed, same scene.
 
 pub mod ecosystem;
+pub mod editor;
 pub mod environment;
 #[cfg(feature = "gltf")]
 pub mod gltf;

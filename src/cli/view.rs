@@ -9,11 +9,12 @@ use std::collections::HashSet;
 use std::num::NonZeroU32;
 use std::rc::Rc;
 use std::time::Instant;
+use sylva::scenes::editor;
 use sylva::systems::live::{LiveCommand, LiveRender, ShownImage};
 use sylva::systems::walkthrough::{FlyCamera, FlyInput, WalkthroughScript};
 use winit::application::ApplicationHandler;
 use winit::dpi::{PhysicalPosition, PhysicalSize};
-use winit::event::{ElementState, MouseButton, MouseScrollDelta, WindowEvent};
+use winit::event::{ElementState, Modifiers, MouseButton, MouseScrollDelta, WindowEvent};
 use winit::event_loop::{ActiveEventLoop, ControlFlow, EventLoop};
 use winit::keyboard::{KeyCode, PhysicalKey};
 use winit::window::{Window, WindowId};
@@ -116,6 +117,9 @@ pub(crate) fn run(args: ViewArgs) -> Result<()> {
     })?;
     let mut app = App {
         live,
+        camera: spawned.camera,
+        modifiers: Modifiers::default(),
+        press: None,
         label: scene_label(&args.scene),
         size: (width, args.height),
         window: None,
@@ -154,6 +158,11 @@ struct ScriptRun {
 
 struct App {
     live: LiveRender,
+    /// The camera entity (for picking on the render thread).
+    camera: Entity,
+    modifiers: Modifiers,
+    /// Where the left button went down: a release nearby is a click, not a drag.
+    press: Option<PhysicalPosition<f64>>,
     label: String,
     size: (u32, u32),
     window: Option<Rc<Window>>,
@@ -174,7 +183,56 @@ struct App {
 /// Radians of turn per pixel of mouse drag.
 const LOOK_PER_PIXEL: f32 = 0.004;
 
+/// An editor operation the render thread runs on the world between frames.
+#[derive(Clone, Copy, Debug, PartialEq)]
+enum EditorAction {
+    Select(u32, u32),
+    Insert(u32, u32),
+    Move(u32, u32),
+    Delete,
+    Undo,
+    Redo,
+}
+
+impl EditorAction {
+    fn command(self, camera: Entity) -> LiveCommand {
+        LiveCommand::Edit(Arc::new(move |world: &mut World| match self {
+            EditorAction::Select(x, y) => {
+                editor::select_at(world, camera, (x, y));
+            }
+            EditorAction::Insert(x, y) => {
+                editor::insert_at(world, camera, (x, y));
+            }
+            EditorAction::Move(x, y) => {
+                editor::move_selected_to(world, camera, (x, y));
+            }
+            EditorAction::Delete => {
+                editor::delete_selected(world);
+            }
+            EditorAction::Undo => {
+                editor::undo(world);
+            }
+            EditorAction::Redo => {
+                editor::redo(world);
+            }
+        }))
+    }
+}
+
 impl App {
+    /// Sends an editor action; its sequence number.
+    fn edit(&mut self, action: EditorAction) -> Option<u64> {
+        self.live.send(action.command(self.camera))
+    }
+
+    /// The image pixel under the cursor, if it is over the image.
+    fn cursor_pixel(&self) -> Option<(u32, u32)> {
+        let cursor = self.cursor?;
+        let (x, y) = (cursor.x.floor(), cursor.y.floor());
+        (x >= 0.0 && y >= 0.0 && (x as u32) < self.size.0 && (y as u32) < self.size.1)
+            .then_some((x as u32, y as u32))
+    }
+
     fn fail(&mut self, event_loop: &ActiveEventLoop, error: anyhow::Error) {
         self.error = Some(error);
         event_loop.exit();
@@ -210,12 +268,15 @@ impl App {
             return;
         };
         window.set_title(&format!(
-            "sylva view: {}, {} frames, {:.0} ms/frame, {:.2} M rays/s, {:.1} m/s (WASD/arrows move, Q/E down/up, drag to look, scroll speed, P screenshot, Esc quit)",
+            "sylva view: {}, {} frames, {:.0} ms/frame, {:.2} M rays/s, {:.1} m/s, {} (WASD/arrows move, Q/E down/up, drag to look, scroll speed, click select, I insert, M move, Del delete, Ctrl+Z/Y undo/redo, P screenshot, Esc quit)",
             self.label,
             shown.frames,
             shown.frame_time.as_secs_f64() * 1e3,
             shown.rays_per_second / 1e6,
             self.fly.speed,
+            shown
+                .selected
+                .map_or("nothing selected".to_string(), |e| format!("plant {e} selected")),
         ));
     }
 
@@ -280,6 +341,21 @@ impl App {
                     } else {
                         self.live.last_sent()
                     };
+                    let actions = [
+                        step.select.map(|[x, y]| EditorAction::Select(x, y)),
+                        step.insert.map(|[x, y]| EditorAction::Insert(x, y)),
+                        step.move_to.map(|[x, y]| EditorAction::Move(x, y)),
+                        step.delete.then_some(EditorAction::Delete),
+                        step.undo.then_some(EditorAction::Undo),
+                        step.redo.then_some(EditorAction::Redo),
+                    ];
+                    let mut command = command;
+                    for action in actions.into_iter().flatten() {
+                        let Some(number) = self.edit(action) else {
+                            return self.fail(event_loop, anyhow::anyhow!("the renderer stopped"));
+                        };
+                        command = number;
+                    }
                     if let Some(script) = &mut self.script {
                         script.waiting = Some((index, command, step.frames.unwrap_or(1)));
                     }
@@ -336,6 +412,31 @@ impl ApplicationHandler<FrameReady> for App {
                 };
                 match (code, event.state) {
                     (KeyCode::Escape, ElementState::Pressed) => event_loop.exit(),
+                    (KeyCode::Delete | KeyCode::Backspace, ElementState::Pressed)
+                        if !event.repeat =>
+                    {
+                        self.edit(EditorAction::Delete);
+                    }
+                    (KeyCode::KeyI, ElementState::Pressed) if !event.repeat => {
+                        if let Some((x, y)) = self.cursor_pixel() {
+                            self.edit(EditorAction::Insert(x, y));
+                        }
+                    }
+                    (KeyCode::KeyM, ElementState::Pressed) if !event.repeat => {
+                        if let Some((x, y)) = self.cursor_pixel() {
+                            self.edit(EditorAction::Move(x, y));
+                        }
+                    }
+                    (KeyCode::KeyZ | KeyCode::KeyY, ElementState::Pressed)
+                        if self.modifiers.state().control_key() =>
+                    {
+                        let redo = code == KeyCode::KeyY || self.modifiers.state().shift_key();
+                        self.edit(if redo {
+                            EditorAction::Redo
+                        } else {
+                            EditorAction::Undo
+                        });
+                    }
                     (KeyCode::KeyP, ElementState::Pressed) if !event.repeat => {
                         self.screenshots += 1;
                         let path = PathBuf::from(format!("sylva-view-{:03}.png", self.screenshots));
@@ -352,11 +453,28 @@ impl ApplicationHandler<FrameReady> for App {
                 }
             }
             WindowEvent::Focused(false) => self.held.clear(),
+            WindowEvent::ModifiersChanged(modifiers) => self.modifiers = modifiers,
             WindowEvent::MouseInput {
                 state,
                 button: MouseButton::Left,
                 ..
-            } => self.dragging = state == ElementState::Pressed,
+            } => {
+                self.dragging = state == ElementState::Pressed;
+                match state {
+                    ElementState::Pressed => self.press = self.cursor,
+                    ElementState::Released => {
+                        // A click (the cursor barely moved) selects what it points at.
+                        let clicked = self
+                            .press
+                            .take()
+                            .zip(self.cursor)
+                            .is_some_and(|(a, b)| (a.x - b.x).abs() + (a.y - b.y).abs() < 4.0);
+                        if clicked && let Some((x, y)) = self.cursor_pixel() {
+                            self.edit(EditorAction::Select(x, y));
+                        }
+                    }
+                }
+            }
             WindowEvent::CursorMoved { position, .. } => {
                 if self.dragging
                     && let Some(last) = self.cursor

@@ -26,6 +26,7 @@
 
 pub mod converge;
 pub mod live;
+pub mod picking;
 mod progressive;
 mod quality;
 mod systems;

@@ -5,6 +5,7 @@
 //! sees the changed transform) and stops at a frame limit, after which the thread sleeps
 //! until the next command.
 
+use crate::picking::Selected;
 use crate::progressive::{StopAt, refine};
 use crate::{FrameCancel, RenderStats, frame_schedule, shown_film};
 use bevy_ecs::prelude::*;
@@ -37,6 +38,8 @@ pub struct ShownImage {
     /// [`LiveRender::send`]): a frame shows a command's effect when this has reached the
     /// command's number.
     pub applied: u64,
+    /// The selected plant ([`Selected`]) when the frame was published.
+    pub selected: Option<Entity>,
 }
 
 impl ShownImage {
@@ -232,6 +235,7 @@ fn run(
         let stats = world.resource::<RenderStats>();
         image.frame_time = stats.last_render;
         image.applied = applied;
+        image.selected = world.get_resource::<Selected>().and_then(|s| s.0);
         image.rays_per_second =
             stats.last_frame.rays() as f64 / stats.last_render.as_secs_f64().max(1e-9);
         *published.lock().unwrap_or_else(PoisonError::into_inner) = Some(image);

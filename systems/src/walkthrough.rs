@@ -111,6 +111,23 @@ pub struct ScriptStep {
     pub look_at: Option<[f32; 3]>,
     /// Wait until the shown image holds this many accumulated frames (default 1).
     pub frames: Option<u32>,
+    /// Select the plant seen at this pixel (`[x, y]` from the top-left corner).
+    pub select: Option<[u32; 2]>,
+    /// Delete the selected plant.
+    #[serde(default)]
+    pub delete: bool,
+    /// Plant one of the selected plant's species (or of the first species) where this
+    /// pixel meets the ground or a plant.
+    pub insert: Option<[u32; 2]>,
+    /// Move the selected plant to where this pixel meets the ground or a plant.
+    #[serde(rename = "move")]
+    pub move_to: Option<[u32; 2]>,
+    /// Take back the latest edit.
+    #[serde(default)]
+    pub undo: bool,
+    /// Make the latest undone edit again.
+    #[serde(default)]
+    pub redo: bool,
     /// Save the shown image (PNG) once the frames are there.
     pub screenshot: Option<std::path::PathBuf>,
     /// End the walkthrough after this step.

@@ -673,3 +673,56 @@ fn a_cancelled_frame_leaves_the_film_and_the_next_one_restarts_it_after_a_move()
     fresh.run();
     assert_eq!(pixels(&w), pixels(&fresh));
 }
+
+#[test]
+fn picking_names_the_entity_whose_surface_the_pixel_shows() {
+    use sylva_systems::picking::pick;
+    let mut w = test_world(1);
+    w.run();
+    let ground = w
+        .world
+        .query_filtered::<Entity, With<Instance>>()
+        .iter(&w.world)
+        .find(|e| !w.plants.contains(e))
+        .unwrap();
+    let (mut plant_pixels, mut ground_pixels, mut sky_pixels) = (Vec::new(), 0, 0);
+    for y in 0..32 {
+        for x in 0..48 {
+            let Some(picked) = pick(&w.world, w.camera, x, y) else {
+                sky_pixels += 1;
+                continue;
+            };
+            let transform = w.world.get::<Transform>(picked.entity).unwrap();
+            // The hit point lies on the picked entity's quad (object-space y = 0 within
+            // the quad's half-size, 20 for the ground and 1 for a leaf).
+            let local = transform
+                .to_affine()
+                .inverse()
+                .transform_point3(picked.point);
+            let half = if picked.entity == ground { 20.0 } else { 1.0 };
+            assert!(local.y.abs() < 1e-3, "({x}, {y}): {local}");
+            assert!(local.x.abs() <= half + 1e-3 && local.z.abs() <= half + 1e-3);
+            assert!(picked.distance > 0.0);
+            if picked.entity == ground {
+                ground_pixels += 1;
+            } else {
+                assert!(w.plants.contains(&picked.entity));
+                plant_pixels.push((x, y, picked.entity));
+            }
+        }
+    }
+    assert!(ground_pixels > 100 && plant_pixels.len() > 20 && sky_pixels > 20);
+    assert!(
+        pick(&w.world, w.camera, 48, 0).is_none(),
+        "outside the image"
+    );
+
+    // A removed plant is not picked once the top level is rebuilt.
+    let (x, y, plant) = plant_pixels[plant_pixels.len() / 2];
+    w.world.despawn(plant);
+    w.run();
+    assert_ne!(
+        pick(&w.world, w.camera, x, y).map(|p| p.entity),
+        Some(plant)
+    );
+}

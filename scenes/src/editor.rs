@@ -1,0 +1,384 @@
+//! Ecosystem edits with undo and redo: insert a plant on the terrain, move one, delete
+//! one. Each edit is an ECS operation ([`plant_at`], [`move_plant`], despawn) that the
+//! next `rebuild_top_level` picks up; the history keeps what undoing it needs. An undone
+//! delete spawns the plant again as a new entity, and the history follows it there. The
+//! pixel operations (`select_at`, `insert_at`, …) are what a viewer's clicks and keys do:
+//! they pick through the camera and keep the history and the selection in the world.
+
+use crate::{move_plant, plant_at};
+use bevy_ecs::prelude::*;
+use sylva_engine::components::{Instance, Layer, Transform};
+use sylva_engine::geometry::GeometryId;
+use sylva_systems::picking::{Selected, pick};
+
+/// A plant as a delete found it: what respawning it needs.
+#[derive(Clone, Copy, Debug, PartialEq)]
+struct PlantSnapshot {
+    transform: Transform,
+    instance: Instance,
+    layer: Option<Layer>,
+}
+
+impl PlantSnapshot {
+    fn of(world: &World, plant: Entity) -> Option<Self> {
+        Some(Self {
+            transform: *world.get::<Transform>(plant)?,
+            instance: *world.get::<Instance>(plant)?,
+            layer: world.get::<Layer>(plant).copied(),
+        })
+    }
+
+    fn spawn(&self, world: &mut World) -> Entity {
+        let mut entity = world.spawn((self.transform, self.instance));
+        if let Some(layer) = self.layer {
+            entity.insert(layer);
+        }
+        entity.id()
+    }
+}
+
+/// One edit, with what undoing it needs.
+#[derive(Clone, Copy, Debug, PartialEq)]
+enum Edit {
+    Insert {
+        plant: Entity,
+        snapshot: PlantSnapshot,
+    },
+    Move {
+        plant: Entity,
+        from: Transform,
+        to: Transform,
+    },
+    Delete {
+        plant: Entity,
+        snapshot: PlantSnapshot,
+    },
+}
+
+impl Edit {
+    fn plant(&self) -> Entity {
+        match *self {
+            Edit::Insert { plant, .. } | Edit::Move { plant, .. } | Edit::Delete { plant, .. } => {
+                plant
+            }
+        }
+    }
+
+    fn with_plant(self, new: Entity) -> Self {
+        match self {
+            Edit::Insert { snapshot, .. } => Edit::Insert {
+                plant: new,
+                snapshot,
+            },
+            Edit::Move { from, to, .. } => Edit::Move {
+                plant: new,
+                from,
+                to,
+            },
+            Edit::Delete { snapshot, .. } => Edit::Delete {
+                plant: new,
+                snapshot,
+            },
+        }
+    }
+}
+
+/// The edits made to a world's plants, for undo and redo.
+#[derive(Resource, Clone, Debug, Default)]
+pub struct EditHistory {
+    done: Vec<Edit>,
+    undone: Vec<Edit>,
+}
+
+impl EditHistory {
+    /// Plants a `species` plant on the terrain at `(x, z)` (see [`plant_at`]).
+    pub fn insert(
+        &mut self,
+        world: &mut World,
+        species: GeometryId,
+        layer: Option<u32>,
+        (x, z): (f32, f32),
+        yaw: f32,
+        scale: f32,
+    ) -> Entity {
+        let plant = plant_at(world, species, x, z, yaw, scale);
+        if let Some(layer) = layer {
+            world.entity_mut(plant).insert(Layer(layer));
+        }
+        let snapshot = PlantSnapshot::of(world, plant).expect("the plant was just spawned");
+        self.record(Edit::Insert { plant, snapshot });
+        plant
+    }
+
+    /// Moves `plant` to stand on the terrain at `(x, z)` (the ground height from
+    /// [`move_plant`]), keeping its orientation and size; false when it is not a plant.
+    pub fn move_to(&mut self, world: &mut World, plant: Entity, (x, z): (f32, f32)) -> bool {
+        let Some(from) = world.get::<Transform>(plant).copied() else {
+            return false;
+        };
+        if !move_plant(world, plant, x, z, 0.0, 1.0) {
+            return false;
+        }
+        let mut transform = world
+            .get_mut::<Transform>(plant)
+            .expect("moved plants have transforms");
+        transform.rotation = from.rotation;
+        transform.scale = from.scale;
+        let to = *transform;
+        self.record(Edit::Move { plant, from, to });
+        true
+    }
+
+    /// Despawns `plant`; false when it is not a plant.
+    pub fn delete(&mut self, world: &mut World, plant: Entity) -> bool {
+        let Some(snapshot) = PlantSnapshot::of(world, plant) else {
+            return false;
+        };
+        world.despawn(plant);
+        self.record(Edit::Delete { plant, snapshot });
+        true
+    }
+
+    /// Takes back the latest edit; false when there is none.
+    pub fn undo(&mut self, world: &mut World) -> bool {
+        let Some(edit) = self.done.pop() else {
+            return false;
+        };
+        let edit = match edit {
+            Edit::Insert { plant, .. } => {
+                world.despawn(plant);
+                edit
+            }
+            Edit::Move { plant, from, .. } => {
+                if let Some(mut transform) = world.get_mut::<Transform>(plant) {
+                    *transform = from;
+                }
+                edit
+            }
+            Edit::Delete { plant, snapshot } => {
+                let again = snapshot.spawn(world);
+                self.follow(plant, again);
+                edit.with_plant(again)
+            }
+        };
+        self.undone.push(edit);
+        true
+    }
+
+    /// Makes the latest undone edit again; false when there is none.
+    pub fn redo(&mut self, world: &mut World) -> bool {
+        let Some(edit) = self.undone.pop() else {
+            return false;
+        };
+        let edit = match edit {
+            Edit::Insert { plant, snapshot } => {
+                let again = snapshot.spawn(world);
+                self.follow(plant, again);
+                edit.with_plant(again)
+            }
+            Edit::Move { plant, to, .. } => {
+                if let Some(mut transform) = world.get_mut::<Transform>(plant) {
+                    *transform = to;
+                }
+                edit
+            }
+            Edit::Delete { plant, .. } => {
+                world.despawn(plant);
+                edit
+            }
+        };
+        self.done.push(edit);
+        true
+    }
+
+    /// Edits that [`undo`](Self::undo) can take back.
+    pub fn undoable(&self) -> usize {
+        self.done.len()
+    }
+
+    /// A new edit: it ends the redo chain.
+    fn record(&mut self, edit: Edit) {
+        self.done.push(edit);
+        self.undone.clear();
+    }
+
+    /// Points every recorded edit of `old` at `new` (a plant spawned again).
+    fn follow(&mut self, old: Entity, new: Entity) {
+        for edit in self.done.iter_mut().chain(self.undone.iter_mut()) {
+            if edit.plant() == old {
+                *edit = edit.with_plant(new);
+            }
+        }
+    }
+}
+
+/// Selects the plant `camera` sees at pixel `(x, y)` (nothing for the sky or the
+/// terrain: plants are the entities with a [`Layer`]); returns it.
+pub fn select_at(world: &mut World, camera: Entity, (x, y): (u32, u32)) -> Option<Entity> {
+    let plant = pick(world, camera, x, y)
+        .map(|p| p.entity)
+        .filter(|&e| world.get::<Layer>(e).is_some());
+    world.insert_resource(Selected(plant));
+    plant
+}
+
+/// Deletes the selected plant (through the world's [`EditHistory`]); false when none is
+/// selected.
+pub fn delete_selected(world: &mut World) -> bool {
+    let Some(plant) = world.get_resource::<Selected>().and_then(|s| s.0) else {
+        return false;
+    };
+    world.insert_resource(Selected(None));
+    with_history(world, |history, world| history.delete(world, plant))
+}
+
+/// Plants one of the selected plant's species and layer (or of the first plant's) where
+/// pixel `(x, y)` meets the scene, upright, unturned, at the template's size; returns it.
+pub fn insert_at(world: &mut World, camera: Entity, (x, y): (u32, u32)) -> Option<Entity> {
+    let point = pick(world, camera, x, y)?.point;
+    let selected = world.get_resource::<Selected>().and_then(|s| s.0);
+    let template = selected
+        .filter(|&e| world.get::<Instance>(e).is_some())
+        .or_else(|| {
+            world
+                .query_filtered::<Entity, (With<Instance>, With<Layer>)>()
+                .iter(world)
+                .next()
+        })?;
+    let species = world.get::<Instance>(template)?.geometry;
+    let layer = world.get::<Layer>(template).map(|l| l.0);
+    let scale = world.get::<Transform>(template).map_or(1.0, |t| t.scale.y);
+    let plant = with_history(world, |history, world| {
+        history.insert(world, species, layer, (point.x, point.z), 0.0, scale)
+    });
+    world.insert_resource(Selected(Some(plant)));
+    Some(plant)
+}
+
+/// Moves the selected plant to where pixel `(x, y)` meets the scene; false when none is
+/// selected or the pixel shows the sky.
+pub fn move_selected_to(world: &mut World, camera: Entity, (x, y): (u32, u32)) -> bool {
+    let Some(plant) = world.get_resource::<Selected>().and_then(|s| s.0) else {
+        return false;
+    };
+    let Some(point) = pick(world, camera, x, y).map(|p| p.point) else {
+        return false;
+    };
+    with_history(world, |history, world| {
+        history.move_to(world, plant, (point.x, point.z))
+    })
+}
+
+/// Takes back the latest edit of the world's [`EditHistory`].
+pub fn undo(world: &mut World) -> bool {
+    world.insert_resource(Selected(None));
+    with_history(world, |history, world| history.undo(world))
+}
+
+/// Makes the latest undone edit of the world's [`EditHistory`] again.
+pub fn redo(world: &mut World) -> bool {
+    world.insert_resource(Selected(None));
+    with_history(world, |history, world| history.redo(world))
+}
+
+/// Runs `edit` with the world's history (created when missing) taken out of the world.
+fn with_history<R>(world: &mut World, edit: impl FnOnce(&mut EditHistory, &mut World) -> R) -> R {
+    let mut history = world.remove_resource::<EditHistory>().unwrap_or_default();
+    let result = edit(&mut history, world);
+    world.insert_resource(history);
+    result
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use glam::Vec3;
+
+    /// Every plant as (geometry, layer, transform bits), sorted: equal worlds list equal.
+    fn listing(world: &mut World) -> Vec<(u32, Option<u32>, [u32; 10])> {
+        let mut list: Vec<_> = world
+            .query::<(&Instance, &Transform, Option<&Layer>)>()
+            .iter(world)
+            .map(|(i, t, l)| {
+                let mut bits = [0u32; 10];
+                let values = [
+                    t.translation.x,
+                    t.translation.y,
+                    t.translation.z,
+                    t.rotation.x,
+                    t.rotation.y,
+                    t.rotation.z,
+                    t.rotation.w,
+                    t.scale.x,
+                    t.scale.y,
+                    t.scale.z,
+                ];
+                for (b, v) in bits.iter_mut().zip(values) {
+                    *b = v.to_bits();
+                }
+                (i.geometry.0, l.map(|l| l.0), bits)
+            })
+            .collect();
+        list.sort();
+        list
+    }
+
+    fn meadow() -> (World, Vec<Entity>) {
+        let mut world = World::new();
+        let plants = (0..4)
+            .map(|i| {
+                let t = Transform::from_translation(Vec3::new(i as f32 * 3.0, 0.0, 1.0))
+                    .with_scale(Vec3::splat(1.0 + i as f32 * 0.1));
+                world
+                    .spawn((
+                        t,
+                        Instance {
+                            geometry: GeometryId(i % 2),
+                        },
+                        Layer(i),
+                    ))
+                    .id()
+            })
+            .collect();
+        (world, plants)
+    }
+
+    #[test]
+    fn every_edit_undoes_to_the_exact_scene_and_redoes_to_the_edited_one() {
+        let (mut world, plants) = meadow();
+        let start = listing(&mut world);
+        let mut history = EditHistory::default();
+        let new = history.insert(&mut world, GeometryId(1), Some(2), (5.0, -4.0), 0.3, 1.5);
+        assert!(history.move_to(&mut world, plants[1], (-7.0, 2.0)));
+        assert!(history.delete(&mut world, plants[2]));
+        assert!(history.move_to(&mut world, new, (1.0, 1.0)));
+        assert!(!history.delete(&mut world, plants[2]), "already gone");
+        let edited = listing(&mut world);
+        assert_eq!(edited.len(), start.len());
+        assert_ne!(edited, start);
+        // The moved plant keeps its size and stands where it was put.
+        let moved = world.get::<Transform>(plants[1]).unwrap();
+        assert_eq!((moved.translation.x, moved.translation.z), (-7.0, 2.0));
+        assert_eq!(moved.scale, Vec3::splat(1.1));
+
+        let mut steps = 0;
+        while history.undo(&mut world) {
+            steps += 1;
+        }
+        assert_eq!(steps, 4);
+        assert_eq!(listing(&mut world), start, "undo all");
+        while history.redo(&mut world) {}
+        assert_eq!(listing(&mut world), edited, "redo all");
+        // Back two (the last move and the delete): the deleted plant returns as it was.
+        history.undo(&mut world);
+        history.undo(&mut world);
+        let mid = listing(&mut world);
+        assert_eq!(mid.len(), start.len() + 1);
+        let deleted = start.iter().find(|p| p.1 == Some(2)).unwrap();
+        assert!(mid.contains(deleted), "the deleted plant is back as it was");
+        // A new edit drops the redo chain.
+        history.delete(&mut world, plants[0]);
+        assert!(!history.redo(&mut world));
+        assert_eq!(history.undoable(), 3);
+    }
+}
