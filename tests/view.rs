@@ -189,10 +189,16 @@ fn edits_in_the_window_show_up_and_undo_restores_the_image_bit_for_bit() {
     let deleted = changed(&images[0], &images[1]);
     assert!(deleted > 100, "deleting the tree changed {deleted} pixels");
     let after_undo = changed(&images[0], &images[2]);
-    assert_eq!(after_undo, 0, "undoing the delete left {after_undo} pixels changed");
+    assert_eq!(
+        after_undo, 0,
+        "undoing the delete left {after_undo} pixels changed"
+    );
     let inserted = changed(&images[0], &images[3]);
     assert!(inserted > 0, "the inserted plant is not seen");
     let after_undo = changed(&images[0], &images[4]);
-    assert_eq!(after_undo, 0, "undoing the insert left {after_undo} pixels changed");
+    assert_eq!(
+        after_undo, 0,
+        "undoing the insert left {after_undo} pixels changed"
+    );
     std::fs::remove_dir_all(&dir).ok();
 }

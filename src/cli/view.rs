@@ -136,6 +136,8 @@ pub(crate) fn run(args: ViewArgs) -> Result<()> {
             steps: s.steps,
             next: 0,
             waiting: None,
+            started: Instant::now(),
+            finished: Vec::new(),
         }),
         screenshots: 0,
         error: None,
@@ -144,7 +146,59 @@ pub(crate) fn run(args: ViewArgs) -> Result<()> {
     if let Some(error) = app.error.take() {
         return Err(error);
     }
+    if let Some(script) = &app.script {
+        println!(
+            "{}",
+            walkthrough_summary(&app.label, &app.live.frame_log(), &script.finished)
+        );
+    }
     Ok(())
+}
+
+/// The walkthrough benchmark's lines: frame times over the run, how long a move took to
+/// show (steps that waited for one frame), and each longer wait's time to its frames.
+fn walkthrough_summary(
+    label: &str,
+    log: &sylva::systems::live::FrameLog,
+    steps: &[(u32, Duration)],
+) -> String {
+    use sylva::systems::live::FrameLog;
+    let ms = |d: Duration| d.as_secs_f64() * 1e3;
+    let spread = |times: Vec<Duration>| {
+        let log = FrameLog {
+            frame_times: times,
+            cancelled: 0,
+        };
+        log.mean_and_p95()
+            .map_or("none".to_string(), |(mean, p95)| {
+                format!("mean {:.0} ms, p95 {:.0} ms", ms(mean), ms(p95))
+            })
+    };
+    // The first step waits for the scene's first frame, not for a move.
+    let moves: Vec<Duration> = steps
+        .iter()
+        .skip(1)
+        .filter(|s| s.0 == 1)
+        .map(|s| s.1)
+        .collect();
+    let rests: Vec<String> = steps
+        .iter()
+        .enumerate()
+        .filter(|(_, s)| s.0 > 1)
+        .map(|(i, (frames, took))| {
+            format!("step {}: {frames} frames after {:.0} ms", i + 1, ms(*took))
+        })
+        .collect();
+    format!(
+        "walkthrough of {label}: {} frames, frame time {}, {} given up for newer input\n  {} moves shown after {}{}{}",
+        log.frame_times.len(),
+        spread(log.frame_times.clone()),
+        log.cancelled,
+        moves.len(),
+        spread(moves.clone()),
+        if rests.is_empty() { "" } else { "; " },
+        rests.join(", ")
+    )
 }
 
 /// A script in progress: the next step to start, and the step waiting for its frames.
@@ -154,6 +208,10 @@ struct ScriptRun {
     /// The running step's index, the sequence number of its camera command and the
     /// frames it waits for.
     waiting: Option<(usize, u64, u32)>,
+    /// When the running step sent its commands.
+    started: Instant,
+    /// Each finished step: its frames and the time they took to show.
+    finished: Vec<(u32, Duration)>,
 }
 
 struct App {
@@ -313,6 +371,7 @@ impl App {
                     }
                     let step = script.steps[index].clone();
                     script.waiting = None;
+                    script.finished.push((frames, script.started.elapsed()));
                     if let Some(path) = &step.screenshot
                         && let Err(e) = self.screenshot(path)
                     {
@@ -331,7 +390,7 @@ impl App {
                     script.next += 1;
                     // A step that stays where the camera is sends nothing: a pose that
                     // differs in the last bit would restart the accumulation.
-                    let command = if step.position.is_some() || step.look_at.is_some() {
+                    let command = if WalkthroughScript::moves(&step) {
                         let pose = WalkthroughScript::pose(&step, &self.fly.transform());
                         self.fly = FlyCamera::from_transform(&pose, self.fly.speed);
                         let Some(command) = self.live.send(LiveCommand::Pose(pose)) else {
@@ -358,6 +417,7 @@ impl App {
                     }
                     if let Some(script) = &mut self.script {
                         script.waiting = Some((index, command, step.frames.unwrap_or(1)));
+                        script.started = Instant::now();
                     }
                 }
             }

@@ -61,6 +61,32 @@ impl ShownImage {
     }
 }
 
+/// What the render thread has done: each complete frame's rendering time, and the
+/// frames it gave up.
+#[derive(Clone, Debug, Default, PartialEq)]
+pub struct FrameLog {
+    /// Rendering time of every complete frame, in order.
+    pub frame_times: Vec<Duration>,
+    /// Frames given up half-way for a newer command.
+    pub cancelled: u32,
+}
+
+impl FrameLog {
+    /// Mean and 95th percentile (nearest rank) of the frame times; `None` before the
+    /// first frame.
+    pub fn mean_and_p95(&self) -> Option<(Duration, Duration)> {
+        let n = self.frame_times.len();
+        if n == 0 {
+            return None;
+        }
+        let mean = self.frame_times.iter().sum::<Duration>() / n as u32;
+        let mut sorted = self.frame_times.clone();
+        sorted.sort();
+        let rank = (n * 95).div_ceil(100).clamp(1, n);
+        Some((mean, sorted[rank - 1]))
+    }
+}
+
 /// What the window asks of the render thread.
 #[derive(Clone)]
 pub enum LiveCommand {
@@ -77,6 +103,7 @@ pub enum LiveCommand {
 pub struct LiveRender {
     commands: Sender<(u64, LiveCommand)>,
     cancel: Arc<AtomicBool>,
+    frame_log: Arc<Mutex<FrameLog>>,
     sent: u64,
     latest: Arc<Mutex<Option<ShownImage>>>,
     thread: Option<JoinHandle<World>>,
@@ -95,6 +122,8 @@ impl LiveRender {
         let (commands, inbox) = mpsc::channel();
         let latest = Arc::new(Mutex::new(None));
         let cancel = Arc::new(AtomicBool::new(false));
+        let frame_log = Arc::new(Mutex::new(FrameLog::default()));
+        let log = frame_log.clone();
         let mut world = world;
         world.insert_resource(FrameCancel(Some(cancel.clone())));
         let flag = cancel.clone();
@@ -107,13 +136,14 @@ impl LiveRender {
                     camera,
                     max_frames.max(1),
                     (inbox, &flag),
-                    &published,
+                    (&published, &log),
                     frame_ready,
                 )
             })?;
         Ok(Self {
             commands,
             cancel,
+            frame_log,
             sent: 0,
             latest,
             thread: Some(thread),
@@ -134,6 +164,14 @@ impl LiveRender {
     /// The sequence number of the last command sent (0 before the first).
     pub fn last_sent(&self) -> u64 {
         self.sent
+    }
+
+    /// What the render thread has done so far.
+    pub fn frame_log(&self) -> FrameLog {
+        self.frame_log
+            .lock()
+            .unwrap_or_else(PoisonError::into_inner)
+            .clone()
     }
 
     /// The newest frame not yet taken, if any.
@@ -188,7 +226,7 @@ fn run(
     camera: Entity,
     max_frames: u32,
     (inbox, cancel): (Receiver<(u64, LiveCommand)>, &AtomicBool),
-    published: &Mutex<Option<ShownImage>>,
+    (published, log): (&Mutex<Option<ShownImage>>, &Mutex<FrameLog>),
     frame_ready: impl Fn(),
 ) -> World {
     let mut schedule = frame_schedule();
@@ -225,6 +263,7 @@ fn run(
             |_, _| crate::progressive::Flow::Stop,
         );
         if progress.cancelled > 0 {
+            log.lock().unwrap_or_else(PoisonError::into_inner).cancelled += 1;
             continue;
         }
         let Some(film) = world.get::<Film>(camera) else {
@@ -234,11 +273,32 @@ fn run(
         let mut image = ShownImage::of_film(film, world.get::<FilteredImage>(camera), exposure);
         let stats = world.resource::<RenderStats>();
         image.frame_time = stats.last_render;
+        log.lock()
+            .unwrap_or_else(PoisonError::into_inner)
+            .frame_times
+            .push(stats.last_render);
         image.applied = applied;
         image.selected = world.get_resource::<Selected>().and_then(|s| s.0);
         image.rays_per_second =
             stats.last_frame.rays() as f64 / stats.last_render.as_secs_f64().max(1e-9);
         *published.lock().unwrap_or_else(PoisonError::into_inner) = Some(image);
         frame_ready();
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn the_frame_log_gives_mean_and_nearest_rank_p95() {
+        assert_eq!(FrameLog::default().mean_and_p95(), None);
+        let log = FrameLog {
+            frame_times: (1..=20).rev().map(Duration::from_millis).collect(),
+            cancelled: 0,
+        };
+        let (mean, p95) = log.mean_and_p95().unwrap();
+        assert_eq!(mean, Duration::from_micros(10_500));
+        assert_eq!(p95, Duration::from_millis(19));
     }
 }

@@ -109,6 +109,8 @@ pub struct ScriptStep {
     pub position: Option<[f32; 3]>,
     /// The point the camera turns to.
     pub look_at: Option<[f32; 3]>,
+    /// Then walk this many metres along the camera's heading (level, as the keys do).
+    pub advance: Option<f32>,
     /// Wait until the shown image holds this many accumulated frames (default 1).
     pub frames: Option<u32>,
     /// Select the plant seen at this pixel (`[x, y]` from the top-left corner).
@@ -150,7 +152,10 @@ impl WalkthroughScript {
         let script: Self = toml::from_str(text).map_err(|e| e.to_string())?;
         for (i, step) in script.steps.iter().enumerate() {
             let finite = |v: &Option<[f32; 3]>| v.is_none_or(|v| v.iter().all(|c| c.is_finite()));
-            if !finite(&step.position) || !finite(&step.look_at) {
+            if !finite(&step.position)
+                || !finite(&step.look_at)
+                || step.advance.is_some_and(|a| !a.is_finite())
+            {
                 return Err(format!(
                     "step {}: coordinates must be finite numbers",
                     i + 1
@@ -167,7 +172,7 @@ impl WalkthroughScript {
     /// position, turned to its `look_at` (unchanged where it says nothing).
     pub fn pose(step: &ScriptStep, current: &Transform) -> Transform {
         let eye = step.position.map_or(current.translation, Vec3::from);
-        match step.look_at.map(Vec3::from) {
+        let mut pose = match step.look_at.map(Vec3::from) {
             Some(target) if (target - eye).length_squared() > 0.0 => {
                 Transform::looking_at(eye, target, Vec3::Y)
             }
@@ -175,7 +180,18 @@ impl WalkthroughScript {
                 translation: eye,
                 ..*current
             },
+        };
+        if let Some(metres) = step.advance {
+            let forward = pose.rotation * -Vec3::Z;
+            let heading = Vec3::new(forward.x, 0.0, forward.z).normalize_or_zero();
+            pose.translation += heading * metres;
         }
+        pose
+    }
+
+    /// True when `step` moves or turns the camera.
+    pub fn moves(step: &ScriptStep) -> bool {
+        step.position.is_some() || step.look_at.is_some() || step.advance.is_some()
     }
 }
 
@@ -202,6 +218,16 @@ mod tests {
             pose.rotation * -Vec3::Z,
             Vec3::new(0.0, -1.0, -10.0).normalize()
         ));
+        let walk = WalkthroughScript::parse("[[step]]\nadvance = 3\n").unwrap();
+        let ahead = WalkthroughScript::pose(&walk.steps[0], &pose);
+        let level = Vec3::new(0.0, 0.0, -1.0) * 3.0;
+        assert!(
+            close(ahead.translation, pose.translation + level),
+            "{}",
+            ahead.translation
+        );
+        assert!(WalkthroughScript::moves(&walk.steps[0]));
+        assert!(!WalkthroughScript::moves(&script.steps[1]));
         let unknown =
             WalkthroughScript::parse("[[step]]\nposition = [0, 2, 10]\nzoom = 2\n").unwrap_err();
         assert!(
