@@ -100,6 +100,7 @@ pub(crate) fn run(args: ViewArgs) -> Result<()> {
     scene.camera.height = args.height;
     scene.camera.exposure = args.exposure;
     let start_pose = scene.camera_transform;
+    let stats = scene.stats();
     // A pace for the scene's size: a twentieth of the plants' spread per second.
     let extent = scene.plants.iter().fold(1.0f32, |m, p| {
         m.max(p.transform.translation.x.abs())
@@ -115,8 +116,15 @@ pub(crate) fn run(args: ViewArgs) -> Result<()> {
     let live = LiveRender::start(world, spawned.camera, args.max_frames, move || {
         let _ = proxy.send_event(FrameReady);
     })?;
+    let font = ab_glyph::FontRef::try_from_slice(dejavu::sans::regular())
+        .map_err(|e| anyhow::anyhow!("the HUD font does not load: {e}"))?;
     let mut app = App {
         live,
+        hud: Some(Hud {
+            font,
+            triangles: stats.instanced_triangles,
+        }),
+        hud_hidden: false,
         camera: spawned.camera,
         modifiers: Modifiers::default(),
         press: None,
@@ -216,6 +224,9 @@ struct ScriptRun {
 
 struct App {
     live: LiveRender,
+    /// The heads-up display (H toggles it).
+    hud: Option<Hud>,
+    hud_hidden: bool,
     /// The camera entity (for picking on the render thread).
     camera: Entity,
     modifiers: Modifiers,
@@ -240,6 +251,114 @@ struct App {
 
 /// Radians of turn per pixel of mouse drag.
 const LOOK_PER_PIXEL: f32 = 0.004;
+
+/// The heads-up display: the frame's figures as text over its top-left corner.
+struct Hud {
+    font: ab_glyph::FontRef<'static>,
+    /// Instanced triangles of the scene as built.
+    triangles: u64,
+}
+
+/// Text height of the HUD in pixels.
+const HUD_TEXT: f32 = 14.0;
+
+impl Hud {
+    /// What the HUD says about `shown`.
+    fn lines(&self, shown: &ShownImage, speed: f32) -> Vec<String> {
+        let ms = |d: Duration| d.as_secs_f64() * 1e3;
+        let fps = 1.0 / shown.frame_time.as_secs_f64().max(1e-6);
+        let memory =
+            current_memory_bytes().map_or("?".to_string(), |b| format!("{:.0} MB", b as f64 / 1e6));
+        vec![
+            format!(
+                "{:.1} fps  {} spp  {:.2} M rays/s",
+                fps,
+                shown.frames,
+                shown.rays_per_second / 1e6
+            ),
+            format!(
+                "render {:.0} ms  top level {:.1} ms (refit {:.1})  tone map {:.1} ms",
+                ms(shown.frame_time),
+                ms(shown.top_level.0),
+                ms(shown.top_level.1),
+                ms(shown.tone_map)
+            ),
+            format!(
+                "{} instances  {} instanced triangles (as built)  memory {memory}",
+                group(shown.instances as u64),
+                group(self.triangles)
+            ),
+            format!(
+                "{:.1} m/s  {}  H hides this",
+                speed,
+                shown
+                    .selected
+                    .map_or("nothing selected".to_string(), |e| format!(
+                        "plant {e} selected"
+                    ))
+            ),
+        ]
+    }
+
+    /// Draws `lines` in white on a darkened band at the top left of `buffer`.
+    fn draw(&self, buffer: &mut [u32], width: usize, height: usize, lines: &[String]) {
+        use ab_glyph::{Font, ScaleFont, point};
+        let scaled = self.font.as_scaled(HUD_TEXT);
+        let line_height = scaled.height().ceil() as usize + 2;
+        let band = (line_height * lines.len() + 6).min(height);
+        let text_width = lines
+            .iter()
+            .map(|l| {
+                l.chars()
+                    .map(|c| scaled.h_advance(self.font.glyph_id(c)))
+                    .sum::<f32>()
+            })
+            .fold(0.0f32, f32::max);
+        let band_width = ((text_width.ceil() as usize) + 12).min(width);
+        for row in buffer.chunks_exact_mut(width).take(band) {
+            for pixel in &mut row[..band_width] {
+                // Halve each channel: the image stays visible under the text.
+                *pixel = (*pixel >> 1) & 0x007f_7f7f;
+            }
+        }
+        for (i, line) in lines.iter().enumerate() {
+            let mut x = 6.0;
+            let baseline = 3.0 + scaled.ascent() + (i * line_height) as f32;
+            for c in line.chars() {
+                let glyph = self
+                    .font
+                    .glyph_id(c)
+                    .with_scale_and_position(HUD_TEXT, point(x, baseline));
+                x += scaled.h_advance(glyph.id);
+                let Some(outline) = self.font.outline_glyph(glyph) else {
+                    continue;
+                };
+                let bounds = outline.px_bounds();
+                outline.draw(|gx, gy, coverage| {
+                    let px = bounds.min.x as i64 + i64::from(gx);
+                    let py = bounds.min.y as i64 + i64::from(gy);
+                    if px < 0 || py < 0 || px as usize >= width || py as usize >= height {
+                        return;
+                    }
+                    let pixel = &mut buffer[py as usize * width + px as usize];
+                    let blend = |shift: u32| {
+                        let under = ((*pixel >> shift) & 0xff) as f32;
+                        ((under + (255.0 - under) * coverage.clamp(0.0, 1.0)) as u32) << shift
+                    };
+                    *pixel = blend(16) | blend(8) | blend(0);
+                });
+            }
+        }
+    }
+}
+
+/// Resident memory of this process now (Linux `VmRSS`), when known.
+fn current_memory_bytes() -> Option<u64> {
+    let status = std::fs::read_to_string("/proc/self/status").ok()?;
+    let line = status.lines().find(|l| l.starts_with("VmRSS:"))?;
+    let kb: u64 = line.split_whitespace().nth(1)?.parse().ok()?;
+    Some(kb * 1024)
+}
 
 /// An editor operation the render thread runs on the world between frames.
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -326,7 +445,7 @@ impl App {
             return;
         };
         window.set_title(&format!(
-            "sylva view: {}, {} frames, {:.0} ms/frame, {:.2} M rays/s, {:.1} m/s, {} (WASD/arrows move, Q/E down/up, drag to look, scroll speed, click select, I insert, M move, Del delete, Ctrl+Z/Y undo/redo, P screenshot, Esc quit)",
+            "sylva view: {}, {} frames, {:.0} ms/frame, {:.2} M rays/s, {:.1} m/s, {} (WASD/arrows move, Q/E down/up, drag to look, scroll speed, click select, I insert, M move, Del delete, Ctrl+Z/Y undo/redo, H HUD, P screenshot, Esc quit)",
             self.label,
             shown.frames,
             shown.frame_time.as_secs_f64() * 1e3,
@@ -497,6 +616,12 @@ impl ApplicationHandler<FrameReady> for App {
                             EditorAction::Undo
                         });
                     }
+                    (KeyCode::KeyH, ElementState::Pressed) if !event.repeat => {
+                        self.hud_hidden = !self.hud_hidden;
+                        if let Some(window) = &self.window {
+                            window.request_redraw();
+                        }
+                    }
                     (KeyCode::KeyP, ElementState::Pressed) if !event.repeat => {
                         self.screenshots += 1;
                         let path = PathBuf::from(format!("sylva-view-{:03}.png", self.screenshots));
@@ -610,10 +735,56 @@ impl App {
                 let dst = row * size.width as usize;
                 buffer[dst..dst + columns].copy_from_slice(&shown.pixels[src..src + columns]);
             }
+            if let Some(hud) = self.hud.as_ref().filter(|_| !self.hud_hidden) {
+                let lines = hud.lines(shown, self.fly.speed);
+                hud.draw(
+                    &mut buffer,
+                    size.width as usize,
+                    size.height as usize,
+                    &lines,
+                );
+            }
         }
         buffer
             .present()
             .map_err(|e| anyhow::anyhow!("cannot show the frame: {e}"))?;
         Ok(())
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn the_hud_writes_its_lines_on_a_darkened_band_and_leaves_the_rest() {
+        let hud = Hud {
+            font: ab_glyph::FontRef::try_from_slice(dejavu::sans::regular()).unwrap(),
+            triangles: 1_234_567,
+        };
+        let shown = ShownImage {
+            width: 320,
+            height: 200,
+            frames: 7,
+            frame_time: Duration::from_millis(250),
+            instances: 42,
+            ..ShownImage::default()
+        };
+        let lines = hud.lines(&shown, 2.5);
+        assert!(lines[0].starts_with("4.0 fps  7 spp"), "{lines:?}");
+        assert!(lines[2].contains("42 instances") && lines[2].contains("1,234,567"));
+        let grey = 0x0080_8080;
+        let mut buffer = vec![grey; 320 * 200];
+        hud.draw(&mut buffer, 320, 200, &lines);
+        let band_rows = (0..200)
+            .filter(|&y| buffer[y * 320..y * 320 + 4].iter().all(|&p| p != grey))
+            .count();
+        assert!((60..100).contains(&band_rows), "{band_rows} rows darkened");
+        let bright = buffer.iter().filter(|&&p| p & 0xff > 0xc0).count();
+        assert!(bright > 200, "only {bright} text pixels");
+        assert!(
+            buffer[150 * 320..].iter().all(|&p| p == grey),
+            "below the band"
+        );
     }
 }

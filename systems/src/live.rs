@@ -7,7 +7,7 @@
 
 use crate::picking::Selected;
 use crate::progressive::{StopAt, refine};
-use crate::{FrameCancel, RenderStats, frame_schedule, shown_film};
+use crate::{FrameCancel, RenderStats, TopLevelState, frame_schedule, shown_film};
 use bevy_ecs::prelude::*;
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::mpsc::{self, Receiver, RecvTimeoutError, Sender};
@@ -18,6 +18,7 @@ use sylva_engine::camera::Camera;
 use sylva_engine::components::Transform;
 use sylva_engine::discontinuity::FilteredImage;
 use sylva_engine::film::Film;
+use sylva_engine::tlas::TopLevel;
 
 /// A frame ready to be shown.
 #[derive(Clone, Debug, Default, PartialEq)]
@@ -40,6 +41,12 @@ pub struct ShownImage {
     pub applied: u64,
     /// The selected plant ([`Selected`]) when the frame was published.
     pub selected: Option<Entity>,
+    /// Instances in the top level (plants and terrain).
+    pub instances: usize,
+    /// Time of the latest top-level rebuild and of the latest refit.
+    pub top_level: (Duration, Duration),
+    /// Time the render thread spent tone-mapping this frame for the window.
+    pub tone_map: Duration,
 }
 
 impl ShownImage {
@@ -270,7 +277,13 @@ fn run(
             return world;
         };
         let exposure = world.get::<Camera>(camera).map_or(0.0, |c| c.exposure);
+        let tone_map_start = std::time::Instant::now();
         let mut image = ShownImage::of_film(film, world.get::<FilteredImage>(camera), exposure);
+        image.tone_map = tone_map_start.elapsed();
+        image.instances = world.get_resource::<TopLevel>().map_or(0, TopLevel::len);
+        image.top_level = world
+            .get_resource::<TopLevelState>()
+            .map_or_else(Default::default, |t| (t.last_build, t.last_refit));
         let stats = world.resource::<RenderStats>();
         image.frame_time = stats.last_render;
         log.lock()
