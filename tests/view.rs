@@ -202,3 +202,51 @@ fn edits_in_the_window_show_up_and_undo_restores_the_image_bit_for_bit() {
     );
     std::fs::remove_dir_all(&dir).ok();
 }
+
+#[test]
+fn wind_sways_the_plants_and_calm_puts_every_one_back() {
+    let dir = temp_dir("wind");
+    let shot = |i: usize| dir.join(format!("w{i}.png"));
+    let steps = [
+        "frames = 1",
+        "wind = true\nframes = 1",
+        "wind = false\nframes = 1\nquit = true",
+    ];
+    let script: String = steps
+        .iter()
+        .enumerate()
+        .map(|(i, step)| {
+            format!(
+                "[[step]]\n{step}\nscreenshot = {:?}\n\n",
+                shot(i).to_str().unwrap()
+            )
+        })
+        .collect();
+    let path = dir.join("wind.toml");
+    std::fs::write(&path, script).unwrap();
+    let run = view_on_xvfb(&[
+        "--width",
+        "96",
+        "--height",
+        "72",
+        "--script",
+        path.to_str().unwrap(),
+    ]);
+    assert!(
+        run.status.success(),
+        "{}",
+        String::from_utf8_lossy(&run.stderr)
+    );
+    let images: Vec<Vec<u8>> = (0..steps.len()).map(|i| rgb(&shot(i)).0).collect();
+    let changed = |a: &[u8], b: &[u8]| {
+        a.chunks_exact(3)
+            .zip(b.chunks_exact(3))
+            .filter(|(p, q)| p != q)
+            .count()
+    };
+    let swayed = changed(&images[0], &images[1]);
+    assert!(swayed > 100, "the wind moved {swayed} pixels");
+    let after_calm = changed(&images[0], &images[2]);
+    assert_eq!(after_calm, 0, "calm left {after_calm} pixels changed");
+    std::fs::remove_dir_all(&dir).ok();
+}

@@ -8,7 +8,8 @@
 use crate::{move_plant, plant_at};
 use bevy_ecs::prelude::*;
 use sylva_engine::components::{Instance, Layer, Transform};
-use sylva_engine::geometry::GeometryId;
+use sylva_engine::geometry::{GeometryId, GeometryLibrary};
+use sylva_engine::sway::{AnimationClock, RestPose, Sway, Wind};
 use sylva_systems::picking::{Selected, pick};
 
 /// A plant as a delete found it: what respawning it needs.
@@ -125,6 +126,7 @@ impl EditHistory {
         transform.rotation = from.rotation;
         transform.scale = from.scale;
         let to = *transform;
+        place(world, plant, to);
         self.record(Edit::Move { plant, from, to });
         true
     }
@@ -150,9 +152,7 @@ impl EditHistory {
                 edit
             }
             Edit::Move { plant, from, .. } => {
-                if let Some(mut transform) = world.get_mut::<Transform>(plant) {
-                    *transform = from;
-                }
+                place(world, plant, from);
                 edit
             }
             Edit::Delete { plant, snapshot } => {
@@ -177,9 +177,7 @@ impl EditHistory {
                 edit.with_plant(again)
             }
             Edit::Move { plant, to, .. } => {
-                if let Some(mut transform) = world.get_mut::<Transform>(plant) {
-                    *transform = to;
-                }
+                place(world, plant, to);
                 edit
             }
             Edit::Delete { plant, .. } => {
@@ -281,6 +279,78 @@ pub fn redo(world: &mut World) -> bool {
     with_history(world, |history, world| history.redo(world))
 }
 
+/// Turns the wind on (the default [`Wind`], every plant swaying from its current pose
+/// with spring parameters from its height, the animation advancing `frame_seconds` of
+/// simulated time per frame) or off (every swaying plant back at its rest pose,
+/// exactly); returns whether the wind is now on.
+pub fn set_wind(world: &mut World, on: bool, frame_seconds: f64) -> bool {
+    if on {
+        world
+            .get_resource_or_insert_with(AnimationClock::default)
+            .frame_seconds = frame_seconds;
+        let plants: Vec<(Entity, GeometryId, f32)> = world
+            .query_filtered::<(Entity, &Instance, &Transform), (With<Layer>, Without<Sway>)>()
+            .iter(world)
+            .map(|(e, i, t)| (e, i.geometry, t.scale.y))
+            .collect();
+        let library = world.get_resource::<GeometryLibrary>();
+        let heights: Vec<(Entity, f32)> = plants
+            .into_iter()
+            .map(|(e, geometry, scale)| {
+                let top = library
+                    .and_then(|l| l.get(geometry))
+                    .map_or(1.0, |g| g.bounds().max.y);
+                (e, (top * scale).clamp(0.05, 100.0))
+            })
+            .collect();
+        for (plant, height) in heights {
+            let rest = *world
+                .get::<Transform>(plant)
+                .expect("queried with a transform");
+            world
+                .entity_mut(plant)
+                .insert((sway_for_height(height), RestPose(rest)));
+        }
+        world.insert_resource(Wind::default());
+    } else {
+        world.remove_resource::<Wind>();
+        let swaying: Vec<(Entity, Transform)> = world
+            .query::<(Entity, &RestPose)>()
+            .iter(world)
+            .map(|(e, r)| (e, r.0))
+            .collect();
+        for (plant, rest) in swaying {
+            let mut entity = world.entity_mut(plant);
+            entity.insert(rest);
+            entity.remove::<(Sway, RestPose)>();
+        }
+    }
+    on
+}
+
+/// Spring parameters for a plant `height` metres tall: inertia grows with the cube of
+/// the height and stiffness with its square, so grass sways at about 1 Hz and a 15 m
+/// tree at about 0.2 Hz; damping at a tenth of critical; wind torque from a drag area
+/// growing with the square of the height.
+fn sway_for_height(height: f32) -> Sway {
+    let h = f64::from(height);
+    let (stiffness, inertia) = (40.0 * h * h, 2.0 * h * h * h);
+    let damping = 0.2 * (stiffness * inertia).sqrt();
+    Sway::new(stiffness, damping, inertia, 0.05 * h * h)
+        .expect("positive finite parameters for a height in 0.05 ..= 100 m")
+}
+
+/// Puts `plant` at `transform`, and its rest pose there too when it sways (the wind
+/// would otherwise pull it back).
+fn place(world: &mut World, plant: Entity, transform: Transform) {
+    if let Some(mut current) = world.get_mut::<Transform>(plant) {
+        *current = transform;
+    }
+    if let Some(mut rest) = world.get_mut::<RestPose>(plant) {
+        rest.0 = transform;
+    }
+}
+
 /// Runs `edit` with the world's history (created when missing) taken out of the world.
 fn with_history<R>(world: &mut World, edit: impl FnOnce(&mut EditHistory, &mut World) -> R) -> R {
     let mut history = world.remove_resource::<EditHistory>().unwrap_or_default();
@@ -341,6 +411,32 @@ mod tests {
             })
             .collect();
         (world, plants)
+    }
+
+    #[test]
+    fn wind_on_sways_every_plant_and_wind_off_puts_each_back_at_rest_exactly() {
+        let (mut world, plants) = meadow();
+        sylva_systems::init_render_world(&mut world, 1).unwrap();
+        let start = listing(&mut world);
+        assert!(set_wind(&mut world, true, 1.0 / 30.0));
+        assert!(world.contains_resource::<Wind>());
+        for &plant in &plants {
+            let sway = world.get::<Sway>(plant).unwrap();
+            assert!(
+                sway.omega() > 0.5 && sway.omega() < 10.0,
+                "{}",
+                sway.omega()
+            );
+        }
+        let mut schedule = sylva_systems::frame_schedule();
+        for _ in 0..30 {
+            schedule.run(&mut world);
+        }
+        assert_ne!(listing(&mut world), start, "nothing swayed");
+        assert!(!set_wind(&mut world, false, 1.0 / 30.0));
+        assert!(!world.contains_resource::<Wind>());
+        assert_eq!(listing(&mut world), start);
+        assert!(world.get::<Sway>(plants[0]).is_none());
     }
 
     #[test]

@@ -125,6 +125,7 @@ pub(crate) fn run(args: ViewArgs) -> Result<()> {
             triangles: stats.instanced_triangles,
         }),
         hud_hidden: false,
+        wind: false,
         camera: spawned.camera,
         modifiers: Modifiers::default(),
         press: None,
@@ -198,7 +199,7 @@ fn walkthrough_summary(
         })
         .collect();
     format!(
-        "walkthrough of {label}: {} frames, frame time {}, {} given up for newer input\n  {} moves shown after {}{}{}",
+        "walkthrough of {label}: {} frames, frame time {}, {} given up for newer input\n  {} one-frame steps (moves, edits) shown after {}{}{}",
         log.frame_times.len(),
         spread(log.frame_times.clone()),
         log.cancelled,
@@ -227,6 +228,8 @@ struct App {
     /// The heads-up display (H toggles it).
     hud: Option<Hud>,
     hud_hidden: bool,
+    /// The wind is blowing (G toggles it).
+    wind: bool,
     /// The camera entity (for picking on the render thread).
     camera: Entity,
     modifiers: Modifiers,
@@ -360,6 +363,10 @@ fn current_memory_bytes() -> Option<u64> {
     Some(kb * 1024)
 }
 
+/// Simulated seconds of wind per rendered frame: about real time at the interactive
+/// frame rates of the larger scenes.
+const WIND_FRAME_SECONDS: f64 = 0.1;
+
 /// An editor operation the render thread runs on the world between frames.
 #[derive(Clone, Copy, Debug, PartialEq)]
 enum EditorAction {
@@ -369,6 +376,8 @@ enum EditorAction {
     Delete,
     Undo,
     Redo,
+    /// Wind on or off.
+    Wind(bool),
 }
 
 impl EditorAction {
@@ -391,6 +400,9 @@ impl EditorAction {
             }
             EditorAction::Redo => {
                 editor::redo(world);
+            }
+            EditorAction::Wind(on) => {
+                editor::set_wind(world, on, WIND_FRAME_SECONDS);
             }
         }))
     }
@@ -445,7 +457,7 @@ impl App {
             return;
         };
         window.set_title(&format!(
-            "sylva view: {}, {} frames, {:.0} ms/frame, {:.2} M rays/s, {:.1} m/s, {} (WASD/arrows move, Q/E down/up, drag to look, scroll speed, click select, I insert, M move, Del delete, Ctrl+Z/Y undo/redo, H HUD, P screenshot, Esc quit)",
+            "sylva view: {}, {} frames, {:.0} ms/frame, {:.2} M rays/s, {:.1} m/s, {} (WASD/arrows move, Q/E down/up, drag to look, scroll speed, click select, I insert, M move, Del delete, Ctrl+Z/Y undo/redo, G wind, H HUD, P screenshot, Esc quit)",
             self.label,
             shown.frames,
             shown.frame_time.as_secs_f64() * 1e3,
@@ -526,6 +538,7 @@ impl App {
                         step.delete.then_some(EditorAction::Delete),
                         step.undo.then_some(EditorAction::Undo),
                         step.redo.then_some(EditorAction::Redo),
+                        step.wind.map(EditorAction::Wind),
                     ];
                     let mut command = command;
                     for action in actions.into_iter().flatten() {
@@ -615,6 +628,10 @@ impl ApplicationHandler<FrameReady> for App {
                         } else {
                             EditorAction::Undo
                         });
+                    }
+                    (KeyCode::KeyG, ElementState::Pressed) if !event.repeat => {
+                        self.wind = !self.wind;
+                        self.edit(EditorAction::Wind(self.wind));
                     }
                     (KeyCode::KeyH, ElementState::Pressed) if !event.repeat => {
                         self.hud_hidden = !self.hud_hidden;

@@ -130,6 +130,8 @@ pub struct ScriptStep {
     /// Make the latest undone edit again.
     #[serde(default)]
     pub redo: bool,
+    /// Turn the wind on or off.
+    pub wind: Option<bool>,
     /// Save the shown image (PNG) once the frames are there.
     pub screenshot: Option<std::path::PathBuf>,
     /// End the walkthrough after this step.
