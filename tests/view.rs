@@ -98,6 +98,26 @@ fn a_scripted_walkthrough_shows_what_render_makes_and_changes_when_the_camera_mo
     let differing = shown.iter().zip(&expected).filter(|(a, b)| a != b).count();
     assert_eq!(differing, 0, "the window shows another image than render");
 
+    // The screenshot says what it shows.
+    let reader = png::Decoder::new(std::io::BufReader::new(
+        std::fs::File::open(&first).unwrap(),
+    ))
+    .read_info()
+    .unwrap();
+    let text: std::collections::HashMap<String, String> = reader
+        .info()
+        .uncompressed_latin1_text
+        .iter()
+        .map(|t| (t.keyword.clone(), t.text.clone()))
+        .collect();
+    assert_eq!(
+        text.get("sylva.frames").map(String::as_str),
+        Some("2"),
+        "{text:?}"
+    );
+    assert_eq!(text.get("sylva.scene").map(String::as_str), Some("meadow"));
+    assert!(text.contains_key("sylva.camera.position"));
+
     // Not blank, and the moved camera sees something else.
     let spread = shown.iter().max().unwrap() - shown.iter().min().unwrap();
     assert!(spread > 64, "a flat image (spread {spread})");

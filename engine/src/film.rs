@@ -468,23 +468,12 @@ impl Film {
         exposure: f32,
         metadata: &[(String, String)],
     ) -> Result<(), OutputError> {
-        let pixels = self.to_srgba8(exposure);
-        write_atomically(path, |tmp| {
-            let file = std::fs::File::create(tmp).map_err(|e| e.to_string())?;
-            let mut encoder =
-                png::Encoder::new(std::io::BufWriter::new(file), self.width, self.height);
-            encoder.set_color(png::ColorType::Rgba);
-            encoder.set_depth(png::BitDepth::Eight);
-            for (key, value) in metadata {
-                // A keyword the format cannot hold is skipped rather than failing the image.
-                let _ = encoder.add_text_chunk(key.clone(), value.clone());
-            }
-            let mut writer = encoder.write_header().map_err(|e| e.to_string())?;
-            writer
-                .write_image_data(&pixels)
-                .map_err(|e| e.to_string())?;
-            writer.finish().map_err(|e| e.to_string())
-        })
+        write_rgba8_png(
+            path,
+            (self.width, self.height),
+            &self.to_srgba8(exposure),
+            metadata,
+        )
     }
 
     /// Writes linear mean radiance as an RGBA f32 EXR, atomically.
@@ -673,6 +662,36 @@ fn sort_exr_header_attributes(file: &mut [u8]) -> Result<(), String> {
     let header: Vec<u8> = sorted.concat();
     file[start..at].copy_from_slice(&header);
     Ok(())
+}
+
+/// Writes `width × height` sRGB8 RGBA pixels (row by row from the top) as a PNG with
+/// `metadata` as tEXt chunks (keywords the format cannot hold are left out), atomically
+/// (temporary file, then rename): a screenshot is written the way a render is.
+pub fn write_rgba8_png(
+    path: &Path,
+    (width, height): (u32, u32),
+    rgba: &[u8],
+    metadata: &[(String, String)],
+) -> Result<(), OutputError> {
+    write_atomically(path, |tmp| {
+        if rgba.len() != width as usize * height as usize * 4 {
+            return Err(format!(
+                "{} bytes for a {width}x{height} RGBA image",
+                rgba.len()
+            ));
+        }
+        let file = std::fs::File::create(tmp).map_err(|e| e.to_string())?;
+        let mut encoder = png::Encoder::new(std::io::BufWriter::new(file), width, height);
+        encoder.set_color(png::ColorType::Rgba);
+        encoder.set_depth(png::BitDepth::Eight);
+        for (key, value) in metadata {
+            // A keyword the format cannot hold is skipped rather than failing the image.
+            let _ = encoder.add_text_chunk(key.clone(), value.clone());
+        }
+        let mut writer = encoder.write_header().map_err(|e| e.to_string())?;
+        writer.write_image_data(rgba).map_err(|e| e.to_string())?;
+        writer.finish().map_err(|e| e.to_string())
+    })
 }
 
 fn write_atomically(

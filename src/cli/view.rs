@@ -469,21 +469,38 @@ impl App {
         ));
     }
 
+    /// Saves the shown frame as a PNG (atomically) with what it shows in its metadata.
     fn screenshot(&mut self, path: &Path) -> Result<()> {
         let shown = self
             .shown
             .as_ref()
             .ok_or_else(|| anyhow::anyhow!("no frame to save yet"))?;
-        let bytes: Vec<u8> = shown
+        let rgba: Vec<u8> = shown
             .pixels
             .iter()
-            .flat_map(|p| [(p >> 16) as u8, (p >> 8) as u8, *p as u8])
+            .flat_map(|p| [(p >> 16) as u8, (p >> 8) as u8, *p as u8, 255])
             .collect();
-        let image = image::RgbImage::from_raw(shown.width, shown.height, bytes)
-            .ok_or_else(|| anyhow::anyhow!("the shown image has the wrong size"))?;
-        image
-            .save(path)
-            .map_err(|e| anyhow::anyhow!("{}: {e}", path.display()))?;
+        let pose = self.fly.transform();
+        let forward = pose.rotation * -glam::Vec3::Z;
+        let metadata: Vec<(String, String)> = [
+            (
+                "Software",
+                format!("sylva {} view", env!("CARGO_PKG_VERSION")),
+            ),
+            ("sylva.scene", self.label.clone()),
+            ("sylva.size", format!("{}x{}", shown.width, shown.height)),
+            ("sylva.frames", shown.frames.to_string()),
+            ("sylva.quality", "interactive".to_string()),
+            (
+                "sylva.camera.position",
+                format!("{:?}", pose.translation.to_array()),
+            ),
+            ("sylva.camera.forward", format!("{:?}", forward.to_array())),
+        ]
+        .into_iter()
+        .map(|(k, v)| (k.to_string(), v))
+        .collect();
+        sylva::engine::film::write_rgba8_png(path, (shown.width, shown.height), &rgba, &metadata)?;
         eprintln!("saved {}", path.display());
         Ok(())
     }
