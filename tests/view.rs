@@ -95,7 +95,7 @@ fn a_scripted_walkthrough_shows_what_render_makes_and_changes_when_the_camera_mo
     let (shown, w, h) = rgb(&first);
     assert_eq!((w, h), (96, 72));
     let expected = rgb(&rendered).0;
-    let differing = shown.iter().zip(&expected).filter(|(a, b)| a != b).count();
+    let differing = changed_pixels(&shown, &expected);
     assert_eq!(differing, 0, "the window shows another image than render");
 
     // The screenshot says what it shows.
@@ -122,11 +122,7 @@ fn a_scripted_walkthrough_shows_what_render_makes_and_changes_when_the_camera_mo
     let spread = shown.iter().max().unwrap() - shown.iter().min().unwrap();
     assert!(spread > 64, "a flat image (spread {spread})");
     let (moved, ..) = rgb(&second);
-    let changed = shown
-        .chunks_exact(3)
-        .zip(moved.chunks_exact(3))
-        .filter(|(a, b)| a != b)
-        .count();
+    let changed = changed_pixels(&shown, &moved);
     assert!(changed > 96 * 72 / 2, "only {changed} pixels changed");
     std::fs::remove_dir_all(&dir).ok();
 }
@@ -162,18 +158,19 @@ fn without_a_display_view_says_so_and_bad_scripts_name_their_line() {
     std::fs::remove_dir_all(&dir).ok();
 }
 
-#[test]
-fn edits_in_the_window_show_up_and_undo_restores_the_image_bit_for_bit() {
-    let dir = temp_dir("edit");
-    let shot = |i: usize| dir.join(format!("e{i}.png"));
-    // The default meadow at 96×72: pixel (63, 20) shows the big tree's crown.
-    let steps = [
-        "frames = 2",
-        "select = [63, 20]\ndelete = true\nframes = 2",
-        "undo = true\nframes = 2",
-        "insert = [48, 50]\nframes = 2",
-        "undo = true\nframes = 2\nquit = true",
-    ];
+/// Pixels (RGB triples) that differ between two images of one size.
+fn changed_pixels(a: &[u8], b: &[u8]) -> usize {
+    a.chunks_exact(3)
+        .zip(b.chunks_exact(3))
+        .filter(|(p, q)| p != q)
+        .count()
+}
+
+/// Runs `sylva view` at 96×72 on a script of `steps` (TOML bodies of `[[step]]` tables),
+/// each followed by a screenshot; returns the screenshots' RGB bytes.
+fn screenshots_of_steps(name: &str, steps: &[&str]) -> Vec<Vec<u8>> {
+    let dir = temp_dir(name);
+    let shot = |i: usize| dir.join(format!("step{i}.png"));
     let script: String = steps
         .iter()
         .enumerate()
@@ -184,7 +181,7 @@ fn edits_in_the_window_show_up_and_undo_restores_the_image_bit_for_bit() {
             )
         })
         .collect();
-    let path = dir.join("edit.toml");
+    let path = dir.join("script.toml");
     std::fs::write(&path, script).unwrap();
     let run = view_on_xvfb(&[
         "--width",
@@ -199,74 +196,52 @@ fn edits_in_the_window_show_up_and_undo_restores_the_image_bit_for_bit() {
         "{}",
         String::from_utf8_lossy(&run.stderr)
     );
-    let images: Vec<Vec<u8>> = (0..steps.len()).map(|i| rgb(&shot(i)).0).collect();
-    let changed = |a: &[u8], b: &[u8]| {
-        a.chunks_exact(3)
-            .zip(b.chunks_exact(3))
-            .filter(|(p, q)| p != q)
-            .count()
-    };
-    let deleted = changed(&images[0], &images[1]);
+    let images = (0..steps.len()).map(|i| rgb(&shot(i)).0).collect();
+    std::fs::remove_dir_all(&dir).ok();
+    images
+}
+
+#[test]
+fn edits_in_the_window_show_up_and_undo_restores_the_image_bit_for_bit() {
+    // The default meadow at 96×72: pixel (63, 20) shows the big tree's crown.
+    let images = screenshots_of_steps(
+        "edit",
+        &[
+            "frames = 2",
+            "select = [63, 20]\ndelete = true\nframes = 2",
+            "undo = true\nframes = 2",
+            "insert = [48, 50]\nframes = 2",
+            "undo = true\nframes = 2\nquit = true",
+        ],
+    );
+    let deleted = changed_pixels(&images[0], &images[1]);
     assert!(deleted > 100, "deleting the tree changed {deleted} pixels");
-    let after_undo = changed(&images[0], &images[2]);
+    let after_undo = changed_pixels(&images[0], &images[2]);
     assert_eq!(
         after_undo, 0,
         "undoing the delete left {after_undo} pixels changed"
     );
-    let inserted = changed(&images[0], &images[3]);
+    let inserted = changed_pixels(&images[0], &images[3]);
     assert!(inserted > 0, "the inserted plant is not seen");
-    let after_undo = changed(&images[0], &images[4]);
+    let after_undo = changed_pixels(&images[0], &images[4]);
     assert_eq!(
         after_undo, 0,
         "undoing the insert left {after_undo} pixels changed"
     );
-    std::fs::remove_dir_all(&dir).ok();
 }
 
 #[test]
 fn wind_sways_the_plants_and_calm_puts_every_one_back() {
-    let dir = temp_dir("wind");
-    let shot = |i: usize| dir.join(format!("w{i}.png"));
-    let steps = [
-        "frames = 1",
-        "wind = true\nframes = 1",
-        "wind = false\nframes = 1\nquit = true",
-    ];
-    let script: String = steps
-        .iter()
-        .enumerate()
-        .map(|(i, step)| {
-            format!(
-                "[[step]]\n{step}\nscreenshot = {:?}\n\n",
-                shot(i).to_str().unwrap()
-            )
-        })
-        .collect();
-    let path = dir.join("wind.toml");
-    std::fs::write(&path, script).unwrap();
-    let run = view_on_xvfb(&[
-        "--width",
-        "96",
-        "--height",
-        "72",
-        "--script",
-        path.to_str().unwrap(),
-    ]);
-    assert!(
-        run.status.success(),
-        "{}",
-        String::from_utf8_lossy(&run.stderr)
+    let images = screenshots_of_steps(
+        "wind",
+        &[
+            "frames = 1",
+            "wind = true\nframes = 1",
+            "wind = false\nframes = 1\nquit = true",
+        ],
     );
-    let images: Vec<Vec<u8>> = (0..steps.len()).map(|i| rgb(&shot(i)).0).collect();
-    let changed = |a: &[u8], b: &[u8]| {
-        a.chunks_exact(3)
-            .zip(b.chunks_exact(3))
-            .filter(|(p, q)| p != q)
-            .count()
-    };
-    let swayed = changed(&images[0], &images[1]);
+    let swayed = changed_pixels(&images[0], &images[1]);
     assert!(swayed > 100, "the wind moved {swayed} pixels");
-    let after_calm = changed(&images[0], &images[2]);
+    let after_calm = changed_pixels(&images[0], &images[2]);
     assert_eq!(after_calm, 0, "calm left {after_calm} pixels changed");
-    std::fs::remove_dir_all(&dir).ok();
 }

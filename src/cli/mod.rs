@@ -169,6 +169,27 @@ fn build_lit(
     Ok((scene, aspect, environment))
 }
 
+/// Sizes the scene's camera: `width` when given, else `height` × `aspect` (a glTF
+/// camera's aspect ratio, 4:3 without a usable one) up to `max_width`; sets its exposure.
+/// Returns the width.
+fn size_camera(
+    scene: &mut SceneBuild,
+    aspect: Option<f32>,
+    (width, height): (Option<u32>, u32),
+    max_width: u32,
+    exposure: f32,
+) -> u32 {
+    let aspect = aspect
+        .filter(|a| a.is_finite() && *a > 0.0)
+        .unwrap_or(4.0 / 3.0);
+    let width =
+        width.unwrap_or_else(|| ((height as f32 * aspect).round() as u32).clamp(1, max_width));
+    scene.camera.width = width;
+    scene.camera.height = height;
+    scene.camera.exposure = exposure;
+    width
+}
+
 /// Name of what is being rendered, for messages.
 fn scene_label(args: &SceneArgs) -> String {
     match &args.gltf {

@@ -257,16 +257,14 @@ pub(crate) fn run(args: RenderArgs) -> Result<()> {
     let mut world = World::new();
     let (mut scene, aspect, environment) =
         build_lit(&mut world, &args.scene, args.env.as_deref(), args.lights)?;
-    let aspect = aspect
-        .filter(|a| a.is_finite() && *a > 0.0)
-        .unwrap_or(4.0 / 3.0);
-    let width = args
-        .width
-        .unwrap_or_else(|| ((args.height as f32 * aspect).round() as u32).clamp(1, 16384));
+    let width = size_camera(
+        &mut scene,
+        aspect,
+        (args.width, args.height),
+        16384,
+        args.exposure,
+    );
     let quality = quality(&args);
-    scene.camera.width = width;
-    scene.camera.height = args.height;
-    scene.camera.exposure = args.exposure;
     let stats = scene.stats();
     let (generate_time, blas_time) = (scene.generate_time, scene.blas_time);
     let spawned = spawn(&mut world, scene);

@@ -90,15 +90,13 @@ pub(crate) fn run(args: ViewArgs) -> Result<()> {
     let mut world = World::new();
     let (mut scene, aspect, environment) =
         build_lit(&mut world, &args.scene, args.env.as_deref(), args.lights)?;
-    let aspect = aspect
-        .filter(|a| a.is_finite() && *a > 0.0)
-        .unwrap_or(4.0 / 3.0);
-    let width = args
-        .width
-        .unwrap_or_else(|| ((args.height as f32 * aspect).round() as u32).clamp(1, 8192));
-    scene.camera.width = width;
-    scene.camera.height = args.height;
-    scene.camera.exposure = args.exposure;
+    let width = size_camera(
+        &mut scene,
+        aspect,
+        (args.width, args.height),
+        8192,
+        args.exposure,
+    );
     let start_pose = scene.camera_transform;
     let stats = scene.stats();
     // A pace for the scene's size: a twentieth of the plants' spread per second.
