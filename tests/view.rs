@@ -245,3 +245,39 @@ fn wind_sways_the_plants_and_calm_puts_every_one_back() {
     let after_calm = changed_pixels(&images[0], &images[2]);
     assert_eq!(after_calm, 0, "calm left {after_calm} pixels changed");
 }
+
+#[test]
+fn a_saved_ecosystem_renders_what_the_window_showed() {
+    let dir = temp_dir("save");
+    let saved = dir.join("edited.toml");
+    let images = screenshots_of_steps(
+        "save-steps",
+        &[
+            "frames = 1",
+            &format!(
+                "select = [63, 20]\ndelete = true\ninsert = [48, 50]\nsave = {:?}\nframes = 2\nquit = true",
+                saved.to_str().unwrap()
+            ),
+        ],
+    );
+    let rendered = dir.join("render.png");
+    let render = Command::new(env!("CARGO_BIN_EXE_sylva"))
+        .args(["render", "--scene"])
+        .arg(&saved)
+        .args(["--preset", "interactive", "--frames", "2"])
+        .args(["--width", "96", "--height", "72", "--quiet", "--out"])
+        .arg(&rendered)
+        .output()
+        .unwrap();
+    assert!(
+        render.status.success(),
+        "{}",
+        String::from_utf8_lossy(&render.stderr)
+    );
+    let differing = changed_pixels(&images[1], &rgb(&rendered).0);
+    assert_eq!(
+        differing, 0,
+        "the saved scene renders {differing} pixels differently"
+    );
+    std::fs::remove_dir_all(&dir).ok();
+}

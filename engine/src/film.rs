@@ -694,7 +694,9 @@ pub fn write_rgba8_png(
     })
 }
 
-fn write_atomically(
+/// Writes a file through `write(temporary path)` and renames it over `path`, so a
+/// reader (or a run killed mid-write) sees the old file or the new one, never half of it.
+pub fn write_atomically(
     path: &Path,
     write: impl FnOnce(&Path) -> Result<(), String>,
 ) -> Result<(), OutputError> {

@@ -134,6 +134,20 @@ pub struct EcosystemSpec {
     pub sky: Option<SkySpec>,
     /// The view.
     pub camera: CameraSpec,
+    /// Every plant where it stands (a saved, edited ecosystem): when given, the layers'
+    /// counts and placement rules are not used, only their species.
+    pub plants: Option<Vec<PlacedPlant>>,
+}
+
+/// A plant of an explicit plant list: its species by name, its layer and its transform.
+#[derive(Clone, Debug, PartialEq)]
+pub struct PlacedPlant {
+    /// The species' name (one of the layers' species).
+    pub species: String,
+    /// Index of its layer.
+    pub layer: u32,
+    /// Where and how it stands.
+    pub transform: Transform,
 }
 
 /// Names of the presets.
@@ -281,6 +295,7 @@ impl EcosystemSpec {
                     )
                 },
             ],
+            plants: None,
             clear_radius: 2.5,
             sun: Some(default_sun()),
             sky: Some(default_sky()),
@@ -385,6 +400,7 @@ impl EcosystemSpec {
                     50,
                 ),
             ],
+            plants: None,
             clear_radius: 2.0,
             sun: Some(default_sun()),
             sky: Some(default_sky()),
@@ -476,6 +492,7 @@ impl EcosystemSpec {
                     237,
                 ),
             ],
+            plants: None,
             clear_radius: 2.0,
             sun: Some(default_sun()),
             sky: Some(default_sky()),
@@ -713,7 +730,28 @@ pub fn build(spec: &EcosystemSpec, seed: u64) -> Result<SceneBuild, SceneError> 
                 .collect()
         })
         .collect();
-    let plants: Vec<Plant> = layer_plants.into_iter().flatten().collect();
+    let plants: Vec<Plant> = match &spec.plants {
+        None => layer_plants.into_iter().flatten().collect(),
+        Some(list) => list
+            .iter()
+            .enumerate()
+            .map(|(i, p)| {
+                let index = distinct
+                    .iter()
+                    .position(|d| d.name == p.species)
+                    .ok_or_else(|| SceneError::UnknownSpecies {
+                        scene: spec.name.clone(),
+                        plant: i,
+                        species: p.species.clone(),
+                    })?;
+                Ok(Plant {
+                    geometry: ids[1 + index],
+                    transform: p.transform,
+                    layer: p.layer,
+                })
+            })
+            .collect::<Result<_, SceneError>>()?,
+    };
     let place_time = place_start.elapsed();
 
     let ground =

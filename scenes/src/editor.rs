@@ -340,6 +340,140 @@ fn sway_for_height(height: f32) -> Sway {
         .expect("positive finite parameters for a height in 0.05 ..= 100 m")
 }
 
+/// Where a scene came from: what a saved ecosystem starts from.
+#[derive(Clone, Debug, PartialEq)]
+pub enum SceneSource {
+    /// A built-in preset, by name.
+    Preset(String),
+    /// A TOML scene file.
+    File(std::path::PathBuf),
+}
+
+/// Why an ecosystem could not be saved.
+#[derive(Debug, thiserror::Error)]
+pub enum SaveError {
+    /// The source scene file could not be read or parsed again.
+    #[error("{}: {reason}", path.display())]
+    Source {
+        /// The scene file.
+        path: std::path::PathBuf,
+        /// What went wrong.
+        reason: String,
+    },
+    /// The seed does not fit a TOML integer.
+    #[error("seed {0} is larger than a scene file can hold ({max})", max = i64::MAX)]
+    Seed(u64),
+    /// Writing failed (the file at the path is as it was).
+    #[error("{}: could not save the scene: {reason}", path.display())]
+    Write {
+        /// The path given.
+        path: std::path::PathBuf,
+        /// What went wrong.
+        reason: String,
+    },
+}
+
+/// Saves the world's ecosystem as a scene file at `path`: the source's settings (a
+/// preset by name, or the source file's tables with relative glTF paths made absolute)
+/// with `seed` and every plant as a `[[plant]]` table (species, layer, exact transform),
+/// so `--scene path` builds the same terrain, species and plants. The write is atomic.
+/// Returns the number of plants saved.
+pub fn save_ecosystem(
+    world: &mut World,
+    source: &SceneSource,
+    seed: u64,
+    path: &std::path::Path,
+) -> Result<usize, SaveError> {
+    use toml::{Table, Value};
+    let mut table = match source {
+        SceneSource::Preset(name) => {
+            let mut t = Table::new();
+            t.insert("preset".into(), Value::String(name.clone()));
+            t
+        }
+        SceneSource::File(file) => {
+            let fail = |reason: String| SaveError::Source {
+                path: file.clone(),
+                reason,
+            };
+            let text = std::fs::read_to_string(file).map_err(|e| fail(e.to_string()))?;
+            let mut t: Table = toml::from_str(&text).map_err(|e| fail(e.to_string()))?;
+            absolute_gltf_paths(&mut t, file.parent().unwrap_or(std::path::Path::new(".")));
+            t
+        }
+    };
+    table.remove("plant");
+    let seed_value = i64::try_from(seed).map_err(|_| SaveError::Seed(seed))?;
+    table.insert("seed".into(), Value::Integer(seed_value));
+    let names: Vec<String> = world
+        .get_resource::<GeometryLibrary>()
+        .map(|l| l.geometries.iter().map(|g| g.name.clone()).collect())
+        .unwrap_or_default();
+    let mut plants: Vec<(u32, Layer, Transform)> = world
+        .query::<(&Instance, &Layer, &Transform)>()
+        .iter(world)
+        .map(|(i, l, t)| (i.geometry.0, *l, *t))
+        .collect();
+    plants.sort_by_key(|p| (p.1.0, p.0));
+    let floats = |v: &[f32]| Value::Array(v.iter().map(|&x| Value::Float(f64::from(x))).collect());
+    let list: Vec<Value> = plants
+        .iter()
+        .map(|(geometry, layer, t)| {
+            let mut p = Table::new();
+            let name = names.get(*geometry as usize).cloned().unwrap_or_default();
+            p.insert("species".into(), Value::String(name));
+            p.insert("layer".into(), Value::Integer(i64::from(layer.0)));
+            p.insert("translation".into(), floats(&t.translation.to_array()));
+            p.insert("rotation".into(), floats(&t.rotation.to_array()));
+            p.insert("scale".into(), floats(&t.scale.to_array()));
+            Value::Table(p)
+        })
+        .collect();
+    let count = list.len();
+    table.insert("plant".into(), Value::Array(list));
+    let text = toml::to_string(&table).map_err(|e| SaveError::Write {
+        path: path.to_path_buf(),
+        reason: e.to_string(),
+    })?;
+    sylva_engine::film::write_atomically(path, |tmp| {
+        std::fs::write(
+            tmp,
+            format!(
+                "# Saved by sylva view: the ecosystem with every plant where it stands.\n{text}"
+            ),
+        )
+        .map_err(|e| e.to_string())
+    })
+    .map_err(|e| SaveError::Write {
+        path: path.to_path_buf(),
+        reason: match e {
+            sylva_engine::film::OutputError::Write { reason, .. } => reason,
+            other => other.to_string(),
+        },
+    })?;
+    Ok(count)
+}
+
+/// Makes every relative `layer[*].species[*].gltf` path absolute against `dir`, so a saved
+/// copy of a scene file finds the models from anywhere.
+fn absolute_gltf_paths(table: &mut toml::Table, dir: &std::path::Path) {
+    let Some(toml::Value::Array(layers)) = table.get_mut("layer") else {
+        return;
+    };
+    for layer in layers {
+        let Some(toml::Value::Array(species)) = layer.get_mut("species") else {
+            continue;
+        };
+        for s in species {
+            if let Some(toml::Value::String(path)) = s.get_mut("gltf")
+                && std::path::Path::new(path.as_str()).is_relative()
+            {
+                *path = dir.join(path.as_str()).to_string_lossy().into_owned();
+            }
+        }
+    }
+}
+
 /// Puts `plant` at `transform`, and its rest pose there too when it sways (the wind
 /// would otherwise pull it back).
 fn place(world: &mut World, plant: Entity, transform: Transform) {
@@ -411,6 +545,66 @@ mod tests {
             })
             .collect();
         (world, plants)
+    }
+
+    /// (species name, layer, transform bits) of every plant, sorted.
+    fn named_listing(world: &mut World) -> Vec<(String, u32, [u32; 10])> {
+        let names: Vec<String> = world
+            .resource::<GeometryLibrary>()
+            .geometries
+            .iter()
+            .map(|g| g.name.clone())
+            .collect();
+        let mut list: Vec<_> = listing(world)
+            .into_iter()
+            .filter_map(|(g, l, bits)| Some((names[g as usize].clone(), l?, bits)))
+            .collect();
+        list.sort();
+        list
+    }
+
+    #[test]
+    fn a_saved_ecosystem_loads_back_plant_for_plant() {
+        let dir = std::env::temp_dir().join(format!("sylva-save-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        let source = dir.join("small.toml");
+        std::fs::write(
+            &source,
+            "[terrain]\nsize = 20.0\ncells = 8\n\n[[layer]]\nname = \"grass\"\ncount = 6\n\n[[layer.species]]\nname = \"g\"\nkind = \"grass\"\nheight = 0.5\ntriangles = 60\n\n[[layer]]\nname = \"shrubs\"\ncount = 3\n\n[[layer.species]]\nname = \"s\"\nkind = \"low_shrub\"\nheight = 1.0\ntriangles = 80\n",
+        )
+        .unwrap();
+        let mut world = World::new();
+        let scene = crate::build_scene(source.to_str().unwrap(), 3).unwrap();
+        let spawned = crate::spawn(&mut world, scene);
+        let mut history = EditHistory::default();
+        history.delete(&mut world, spawned.plants[0]);
+        history.move_to(&mut world, spawned.plants[7], (2.5, -3.0));
+        let shrub = world.get::<Instance>(spawned.plants[7]).unwrap().geometry;
+        history.insert(&mut world, shrub, Some(1), (-4.0, 4.0), 0.7, 1.3);
+        let edited = named_listing(&mut world);
+        assert_eq!(edited.len(), 9);
+
+        let saved = dir.join("saved.toml");
+        let count =
+            save_ecosystem(&mut world, &SceneSource::File(source.clone()), 3, &saved).unwrap();
+        assert_eq!(count, 9);
+        // Loaded with another seed on the command line: the file's own seed wins.
+        let mut again = World::new();
+        crate::spawn(
+            &mut again,
+            crate::build_scene(saved.to_str().unwrap(), 99).unwrap(),
+        );
+        assert_eq!(named_listing(&mut again), edited);
+
+        let unknown = std::fs::read_to_string(&saved)
+            .unwrap()
+            .replace("species = \"s\"", "species = \"x\"");
+        std::fs::write(&saved, unknown).unwrap();
+        let error = crate::build_scene(saved.to_str().unwrap(), 3)
+            .unwrap_err()
+            .to_string();
+        assert!(error.contains("'x'"), "{error}");
+        std::fs::remove_dir_all(&dir).ok();
     }
 
     #[test]

@@ -41,6 +41,16 @@ pub enum SceneError {
         /// The name given.
         name: String,
     },
+    /// An explicit plant names a species no layer has.
+    #[error("scene '{scene}': plant {plant} is of species '{species}', which no layer has")]
+    UnknownSpecies {
+        /// The scene.
+        scene: String,
+        /// Index of the plant in the list.
+        plant: usize,
+        /// The name it gives.
+        species: String,
+    },
     /// A generated mesh is malformed (a bug in a generator).
     #[error("scene '{scene}', mesh '{mesh}': {source}")]
     Mesh {

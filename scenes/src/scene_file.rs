@@ -52,16 +52,25 @@
 //! target = [0.0, 0.0]
 //! target_height = 2.0
 //! fov = 55.0
+//!
+//! [[plant]]                # optional: every plant where it stands (what `sylva view`
+//! species = "tall grass"   # saves); the layers then give only the species
+//! layer = 0                # index into the layers
+//! translation = [1.5, 0.2, -3.0]
+//! rotation = [0.0, 0.38, 0.0, 0.92]   # unit quaternion x, y, z, w
+//! scale = [1.1, 1.1, 1.1]
 //! ```
 
 use crate::ecosystem::{
-    CameraSpec, EcosystemSpec, LayerSpec, PRESETS, SkySpec, SpeciesSource, SpeciesSpec, SunSpec,
+    CameraSpec, EcosystemSpec, LayerSpec, PRESETS, PlacedPlant, SkySpec, SpeciesSource,
+    SpeciesSpec, SunSpec,
 };
 use crate::species::{LeafShape, PlantKind};
 use glam::{Vec2, Vec3};
 use serde::Deserialize;
 use std::ops::Range;
 use std::path::{Path, PathBuf};
+use sylva_engine::components::Transform;
 use sylva_engine::light::SkyLight;
 use sylva_engine::shading::srgb_to_linear;
 use toml::Spanned;
@@ -101,6 +110,17 @@ struct Document {
     sun: Option<SunDoc>,
     sky: Option<SkyDoc>,
     camera: Option<CameraDoc>,
+    plant: Option<Vec<Spanned<PlantDoc>>>,
+}
+
+#[derive(Deserialize)]
+#[serde(deny_unknown_fields)]
+struct PlantDoc {
+    species: String,
+    layer: u32,
+    translation: [f32; 3],
+    rotation: [f32; 4],
+    scale: [f32; 3],
 }
 
 #[derive(Deserialize)]
@@ -395,6 +415,51 @@ impl SceneFile {
                 },
             };
         }
+        if let Some(plants) = &doc.plant {
+            let mut list = Vec::with_capacity(plants.len());
+            for (i, plant) in plants.iter().enumerate() {
+                let p = plant.get_ref();
+                let key = format!("plant[{i}]");
+                let finite = p
+                    .translation
+                    .iter()
+                    .chain(&p.rotation)
+                    .chain(&p.scale)
+                    .all(|v| v.is_finite());
+                let rotation = glam::Quat::from_array(p.rotation);
+                if !finite
+                    || (rotation.length() - 1.0).abs() > 1e-3
+                    || p.scale.iter().any(|&v| v <= 0.0)
+                {
+                    return Err(cx.error(
+                        Some(plant.span()),
+                        &key,
+                        "needs finite numbers, a unit rotation quaternion [x, y, z, w] and a positive scale".into(),
+                    ));
+                }
+                if p.layer as usize >= spec.layers.len() {
+                    return Err(cx.error(
+                        Some(plant.span()),
+                        &key,
+                        format!(
+                            "layer {} does not exist ({} layers)",
+                            p.layer,
+                            spec.layers.len()
+                        ),
+                    ));
+                }
+                list.push(PlacedPlant {
+                    species: p.species.clone(),
+                    layer: p.layer,
+                    transform: Transform {
+                        translation: Vec3::from(p.translation),
+                        rotation,
+                        scale: Vec3::from(p.scale),
+                    },
+                });
+            }
+            spec.plants = Some(list);
+        }
         Ok(SceneFile {
             spec,
             seed: doc.seed,
@@ -633,6 +698,37 @@ target = [0, 0]
             }
         );
         assert_eq!(file.spec.camera.eye, Vec2::new(0.0, 8.0));
+    }
+
+    #[test]
+    fn explicit_plants_are_read_and_bad_ones_are_refused_by_key() {
+        let good = parse(
+            "preset = \"meadow\"\n[[plant]]\nspecies = \"meadow grass 1\"\nlayer = 0\ntranslation = [1, 2, 3]\nrotation = [0, 0, 0, 1]\nscale = [2, 2, 2]\n",
+        )
+        .unwrap();
+        let plants = good.spec.plants.unwrap();
+        assert_eq!(plants.len(), 1);
+        assert_eq!(plants[0].transform.translation, Vec3::new(1.0, 2.0, 3.0));
+        for (bad, why) in [
+            (
+                "rotation = [0, 0, 0, 2]\nscale = [1, 1, 1]\nlayer = 0",
+                "unit rotation",
+            ),
+            (
+                "rotation = [0, 0, 0, 1]\nscale = [0, 1, 1]\nlayer = 0",
+                "positive scale",
+            ),
+            (
+                "rotation = [0, 0, 0, 1]\nscale = [1, 1, 1]\nlayer = 9",
+                "layer 9",
+            ),
+        ] {
+            let text = format!(
+                "preset = \"meadow\"\n[[plant]]\nspecies = \"a\"\ntranslation = [0, 0, 0]\n{bad}\n"
+            );
+            let error = parse(&text).unwrap_err().to_string();
+            assert!(error.contains("plant[0]") && error.contains(why), "{error}");
+        }
     }
 
     #[test]

@@ -41,6 +41,10 @@ pub(crate) struct ViewArgs {
     /// Frames accumulated while the camera rests, after which rendering pauses.
     #[arg(long, default_value_t = 64, value_parser = clap::value_parser!(u32).range(1..=100_000))]
     max_frames: u32,
+    /// Where Ctrl+S saves the edited ecosystem (a scene file with every plant where it
+    /// stands) [default: NAME-edited.toml in the current directory].
+    #[arg(long, value_name = "FILE")]
+    save: Option<PathBuf>,
     /// Fly a scripted walkthrough: TOML `[[step]]` tables with `position`, `look_at`,
     /// `frames` (wait for that many accumulated frames), `screenshot` (PNG) and `quit`.
     #[arg(long, value_name = "FILE")]
@@ -116,8 +120,25 @@ pub(crate) fn run(args: ViewArgs) -> Result<()> {
     })?;
     let font = ab_glyph::FontRef::try_from_slice(dejavu::sans::regular())
         .map_err(|e| anyhow::anyhow!("the HUD font does not load: {e}"))?;
+    let save = Saving {
+        source: match (&args.scene.gltf, args.scene.scene.as_str()) {
+            (Some(_), _) => None,
+            (None, name) if name.ends_with(".toml") => {
+                Some(editor::SceneSource::File(PathBuf::from(name)))
+            }
+            (None, name) => Some(editor::SceneSource::Preset(name.to_string())),
+        },
+        seed: args.scene.seed,
+        path: args.save.clone().unwrap_or_else(|| {
+            let stem = Path::new(&args.scene.scene)
+                .file_stem()
+                .map_or("scene".into(), |s| s.to_string_lossy().into_owned());
+            PathBuf::from(format!("{stem}-edited.toml"))
+        }),
+    };
     let mut app = App {
         live,
+        saving: Arc::new(save),
         hud: Some(Hud {
             font,
             triangles: stats.instanced_triangles,
@@ -221,8 +242,36 @@ struct ScriptRun {
     finished: Vec<(u32, Duration)>,
 }
 
+/// What saving the edited ecosystem needs: where the scene came from, its seed and
+/// where Ctrl+S writes.
+struct Saving {
+    source: Option<editor::SceneSource>,
+    seed: u64,
+    path: PathBuf,
+}
+
+impl Saving {
+    /// The command that saves on the render thread to `path` (the default when `None`),
+    /// reporting on standard error.
+    fn command(self: &Arc<Self>, path: Option<PathBuf>) -> LiveCommand {
+        let saving = self.clone();
+        LiveCommand::Edit(Arc::new(move |world: &mut World| {
+            let path = path.clone().unwrap_or_else(|| saving.path.clone());
+            let Some(source) = &saving.source else {
+                eprintln!("error: saving needs a built-in scene or a .toml scene file, not glTF");
+                return;
+            };
+            match editor::save_ecosystem(world, source, saving.seed, &path) {
+                Ok(plants) => eprintln!("saved {plants} plants to {}", path.display()),
+                Err(e) => eprintln!("error: {e}"),
+            }
+        }))
+    }
+}
+
 struct App {
     live: LiveRender,
+    saving: Arc<Saving>,
     /// The heads-up display (H toggles it).
     hud: Option<Hud>,
     hud_hidden: bool,
@@ -562,6 +611,13 @@ impl App {
                         };
                         command = number;
                     }
+                    if let Some(path) = &step.save {
+                        let Some(number) = self.live.send(self.saving.command(Some(path.clone())))
+                        else {
+                            return self.fail(event_loop, anyhow::anyhow!("the renderer stopped"));
+                        };
+                        command = number;
+                    }
                     if let Some(script) = &mut self.script {
                         script.waiting = Some((index, command, step.frames.unwrap_or(1)));
                         script.started = Instant::now();
@@ -633,6 +689,12 @@ impl ApplicationHandler<FrameReady> for App {
                         if let Some((x, y)) = self.cursor_pixel() {
                             self.edit(EditorAction::Move(x, y));
                         }
+                    }
+                    (KeyCode::KeyS, ElementState::Pressed)
+                        if self.modifiers.state().control_key() && !event.repeat =>
+                    {
+                        self.held.remove(&KeyCode::KeyS);
+                        self.live.send(self.saving.command(None));
                     }
                     (KeyCode::KeyZ | KeyCode::KeyY, ElementState::Pressed)
                         if self.modifiers.state().control_key() =>

@@ -132,6 +132,8 @@ pub struct ScriptStep {
     pub redo: bool,
     /// Turn the wind on or off.
     pub wind: Option<bool>,
+    /// Save the edited ecosystem as a scene file here (after this step's edits).
+    pub save: Option<std::path::PathBuf>,
     /// Save the shown image (PNG) once the frames are there.
     pub screenshot: Option<std::path::PathBuf>,
     /// End the walkthrough after this step.
