@@ -84,17 +84,9 @@ fn a_scripted_walkthrough_shows_what_render_makes_and_changes_when_the_camera_mo
     );
 
     // The window's first view after two frames is the interactive render's image.
-    let rendered = dir.join("render.png");
-    let render = Command::new(env!("CARGO_BIN_EXE_sylva"))
-        .args(["render", "--preset", "interactive", "--frames", "2"])
-        .args(["--width", "96", "--height", "72", "--quiet", "--out"])
-        .arg(&rendered)
-        .output()
-        .unwrap();
-    assert!(render.status.success());
     let (shown, w, h) = rgb(&first);
     assert_eq!((w, h), (96, 72));
-    let expected = rgb(&rendered).0;
+    let expected = interactive_render(None, &dir.join("render.png"));
     let differing = changed_pixels(&shown, &expected);
     assert_eq!(differing, 0, "the window shows another image than render");
 
@@ -156,6 +148,28 @@ fn without_a_display_view_says_so_and_bad_scripts_name_their_line() {
         "{stderr}"
     );
     std::fs::remove_dir_all(&dir).ok();
+}
+
+/// RGB bytes of `sylva render --preset interactive --frames 2` at 96×72 written to `out`,
+/// of `scene` (a scene file) or the default scene.
+fn interactive_render(scene: Option<&Path>, out: &Path) -> Vec<u8> {
+    let mut command = Command::new(env!("CARGO_BIN_EXE_sylva"));
+    command.arg("render");
+    if let Some(scene) = scene {
+        command.arg("--scene").arg(scene);
+    }
+    let render = command
+        .args(["--preset", "interactive", "--frames", "2"])
+        .args(["--width", "96", "--height", "72", "--quiet", "--out"])
+        .arg(out)
+        .output()
+        .unwrap();
+    assert!(
+        render.status.success(),
+        "{}",
+        String::from_utf8_lossy(&render.stderr)
+    );
+    rgb(out).0
 }
 
 /// Pixels (RGB triples) that differ between two images of one size.
@@ -260,21 +274,8 @@ fn a_saved_ecosystem_renders_what_the_window_showed() {
             ),
         ],
     );
-    let rendered = dir.join("render.png");
-    let render = Command::new(env!("CARGO_BIN_EXE_sylva"))
-        .args(["render", "--scene"])
-        .arg(&saved)
-        .args(["--preset", "interactive", "--frames", "2"])
-        .args(["--width", "96", "--height", "72", "--quiet", "--out"])
-        .arg(&rendered)
-        .output()
-        .unwrap();
-    assert!(
-        render.status.success(),
-        "{}",
-        String::from_utf8_lossy(&render.stderr)
-    );
-    let differing = changed_pixels(&images[1], &rgb(&rendered).0);
+    let rendered = interactive_render(Some(&saved), &dir.join("render.png"));
+    let differing = changed_pixels(&images[1], &rendered);
     assert_eq!(
         differing, 0,
         "the saved scene renders {differing} pixels differently"
