@@ -234,6 +234,12 @@ pub fn delete_selected(world: &mut World) -> bool {
 /// pixel `(x, y)` meets the scene, upright, unturned, at the template's size; returns it.
 pub fn insert_at(world: &mut World, camera: Entity, (x, y): (u32, u32)) -> Option<Entity> {
     let point = pick(world, camera, x, y)?.point;
+    insert_at_ground(world, (point.x, point.z))
+}
+
+/// Plants one of the selected plant's species and layer (or of the first plant's) on
+/// the terrain at `(x, z)`, upright, unturned, at the template's size; returns it.
+pub fn insert_at_ground(world: &mut World, (x, z): (f32, f32)) -> Option<Entity> {
     let selected = world.get_resource::<Selected>().and_then(|s| s.0);
     let template = selected
         .filter(|&e| world.get::<Instance>(e).is_some())
@@ -247,7 +253,7 @@ pub fn insert_at(world: &mut World, camera: Entity, (x, y): (u32, u32)) -> Optio
     let layer = world.get::<Layer>(template).map(|l| l.0);
     let scale = world.get::<Transform>(template).map_or(1.0, |t| t.scale.y);
     let plant = with_history(world, |history, world| {
-        history.insert(world, species, layer, (point.x, point.z), 0.0, scale)
+        history.insert(world, species, layer, (x, z), 0.0, scale)
     });
     world.insert_resource(Selected(Some(plant)));
     Some(plant)
@@ -256,15 +262,25 @@ pub fn insert_at(world: &mut World, camera: Entity, (x, y): (u32, u32)) -> Optio
 /// Moves the selected plant to where pixel `(x, y)` meets the scene; false when none is
 /// selected or the pixel shows the sky.
 pub fn move_selected_to(world: &mut World, camera: Entity, (x, y): (u32, u32)) -> bool {
+    pick(world, camera, x, y)
+        .is_some_and(|p| move_selected_to_ground(world, (p.point.x, p.point.z)))
+}
+
+/// Moves the selected plant onto the terrain at `(x, z)`; false when none is selected.
+pub fn move_selected_to_ground(world: &mut World, (x, z): (f32, f32)) -> bool {
     let Some(plant) = world.get_resource::<Selected>().and_then(|s| s.0) else {
         return false;
     };
-    let Some(point) = pick(world, camera, x, y).map(|p| p.point) else {
-        return false;
-    };
     with_history(world, |history, world| {
-        history.move_to(world, plant, (point.x, point.z))
+        history.move_to(world, plant, (x, z))
     })
+}
+
+/// Selects `plant` when it is a plant (an entity with a [`Layer`]), or nothing.
+pub fn select(world: &mut World, plant: Option<Entity>) -> Option<Entity> {
+    let plant = plant.filter(|&e| world.get::<Layer>(e).is_some());
+    world.insert_resource(Selected(plant));
+    plant
 }
 
 /// Takes back the latest edit of the world's [`EditHistory`].

@@ -41,6 +41,9 @@ pub(crate) struct ViewArgs {
     /// Frames accumulated while the camera rests, after which rendering pauses.
     #[arg(long, default_value_t = 64, value_parser = clap::value_parser!(u32).range(1..=100_000))]
     max_frames: u32,
+    /// Start with the top-down map panel shown (Tab toggles it).
+    #[arg(long)]
+    map: bool,
     /// Where Ctrl+S saves the edited ecosystem (a scene file with every plant where it
     /// stands) [default: NAME-edited.toml in the current directory].
     #[arg(long, value_name = "FILE")]
@@ -145,6 +148,7 @@ pub(crate) fn run(args: ViewArgs) -> Result<()> {
         }),
         hud_hidden: false,
         wind: false,
+        map_shown: args.map,
         camera: spawned.camera,
         modifiers: Modifiers::default(),
         press: None,
@@ -277,6 +281,8 @@ struct App {
     hud_hidden: bool,
     /// The wind is blowing (G toggles it).
     wind: bool,
+    /// The top-down map panel is shown (Tab toggles it).
+    map_shown: bool,
     /// The camera entity (for picking on the render thread).
     camera: Entity,
     modifiers: Modifiers,
@@ -402,6 +408,137 @@ impl Hud {
     }
 }
 
+/// The editor's top-down map: a square panel at the bottom right of the window with
+/// every plant as a circle coloured by species and sized by its crown.
+#[derive(Clone, Copy, Debug, PartialEq)]
+struct MapView {
+    /// Panel's top-left pixel and side.
+    left: f32,
+    top: f32,
+    side: f32,
+    /// World (x, z) at the panel's top-left, and pixels per metre.
+    origin: glam::Vec2,
+    scale: f32,
+}
+
+impl MapView {
+    /// The panel for a `width × height` window showing `plants` (their spread, padded).
+    fn new(width: u32, height: u32, plants: &[sylva::systems::picking::MapPlant]) -> Self {
+        let side = (width.min(height) as f32 * 0.45).floor();
+        let (lo, hi) = plants.iter().fold(
+            (
+                glam::Vec2::splat(f32::INFINITY),
+                glam::Vec2::splat(f32::NEG_INFINITY),
+            ),
+            |(lo, hi), p| (lo.min(p.position), hi.max(p.position)),
+        );
+        let (lo, hi) = if lo.x <= hi.x {
+            (lo, hi)
+        } else {
+            (glam::Vec2::ZERO, glam::Vec2::ONE)
+        };
+        let extent = (hi - lo).max_element().max(1.0) * 1.04;
+        let centre = (lo + hi) * 0.5;
+        Self {
+            left: width as f32 - side - 6.0,
+            top: height as f32 - side - 6.0,
+            side,
+            origin: centre - glam::Vec2::splat(extent * 0.5),
+            scale: side / extent,
+        }
+    }
+
+    fn contains(self, x: f32, y: f32) -> bool {
+        x >= self.left && y >= self.top && x < self.left + self.side && y < self.top + self.side
+    }
+
+    fn to_panel(self, world: glam::Vec2) -> glam::Vec2 {
+        glam::Vec2::new(self.left, self.top) + (world - self.origin) * self.scale
+    }
+
+    fn to_world(self, x: f32, y: f32) -> glam::Vec2 {
+        self.origin + (glam::Vec2::new(x, y) - glam::Vec2::new(self.left, self.top)) / self.scale
+    }
+
+    /// The plant drawn under panel pixel `(x, y)`: the nearest whose circle (at least
+    /// three pixels wide) holds it.
+    fn plant_at(
+        &self,
+        plants: &[sylva::systems::picking::MapPlant],
+        x: f32,
+        y: f32,
+    ) -> Option<Entity> {
+        let at = self.to_world(x, y);
+        plants
+            .iter()
+            .map(|p| (p, p.position.distance(at)))
+            .filter(|(p, d)| *d <= p.radius.max(3.0 / self.scale))
+            .min_by(|a, b| a.1.total_cmp(&b.1))
+            .map(|(p, _)| p.entity)
+    }
+
+    /// Draws the panel into `buffer` (`width` pixels a row).
+    fn draw(
+        &self,
+        buffer: &mut [u32],
+        width: usize,
+        plants: &[sylva::systems::picking::MapPlant],
+        selected: Option<Entity>,
+    ) {
+        let height = buffer.len() / width.max(1);
+        let (x0, y0, side) = (self.left as usize, self.top as usize, self.side as usize);
+        for row in y0..(y0 + side).min(height) {
+            for pixel in
+                &mut buffer[row * width + x0..(row * width + x0 + side).min((row + 1) * width)]
+            {
+                *pixel = 0x0020_2820;
+            }
+        }
+        let mut disc = |centre: glam::Vec2, radius: f32, colour: u32| {
+            let r = radius.max(0.7);
+            let (lo, hi) = (centre - r, centre + r);
+            for y in lo.y.floor().max(self.top) as usize
+                ..=hi.y.ceil().min(self.top + self.side - 1.0) as usize
+            {
+                for x in lo.x.floor().max(self.left) as usize
+                    ..=hi.x.ceil().min(self.left + self.side - 1.0) as usize
+                {
+                    let d = glam::Vec2::new(x as f32 + 0.5, y as f32 + 0.5) - centre;
+                    if (d.length() <= r || r < 1.0) && y < height && x < width {
+                        buffer[y * width + x] = colour;
+                    }
+                }
+            }
+        };
+        // Larger plants first, so the small ones under them stay visible.
+        let mut order: Vec<&sylva::systems::picking::MapPlant> = plants.iter().collect();
+        order.sort_by(|a, b| b.radius.total_cmp(&a.radius));
+        for plant in order {
+            disc(
+                self.to_panel(plant.position),
+                plant.radius * self.scale,
+                species_colour(plant.species),
+            );
+        }
+        if let Some(p) = plants.iter().find(|p| Some(p.entity) == selected) {
+            let centre = self.to_panel(p.position);
+            disc(centre, (p.radius * self.scale).max(3.0) + 2.0, 0x00ff_ffff);
+            disc(
+                centre,
+                (p.radius * self.scale).max(3.0),
+                species_colour(p.species),
+            );
+        }
+    }
+}
+
+/// A bright, stable colour per species.
+fn species_colour(species: u32) -> u32 {
+    let h = sylva::engine::sampling::mix64(u64::from(species) + 17);
+    let channel = |shift: u32| 0x40 + ((h >> shift) & 0xff) as u32 * 3 / 4;
+    (channel(0) << 16) | (channel(8) << 8) | channel(16)
+}
+
 /// Resident memory of this process now (Linux `VmRSS`), when known.
 fn current_memory_bytes() -> Option<u64> {
     let status = std::fs::read_to_string("/proc/self/status").ok()?;
@@ -425,6 +562,12 @@ enum EditorAction {
     Redo,
     /// Wind on or off.
     Wind(bool),
+    /// Select this plant (from the map).
+    SelectPlant(Entity),
+    /// Plant at a ground position (x, z) (from the map).
+    InsertAtGround(f32, f32),
+    /// Move the selection to a ground position (x, z) (from the map).
+    MoveToGround(f32, f32),
 }
 
 impl EditorAction {
@@ -432,6 +575,15 @@ impl EditorAction {
         LiveCommand::Edit(Arc::new(move |world: &mut World| match self {
             EditorAction::Select(x, y) => {
                 editor::select_at(world, camera, (x, y));
+            }
+            EditorAction::SelectPlant(plant) => {
+                editor::select(world, Some(plant));
+            }
+            EditorAction::InsertAtGround(x, z) => {
+                editor::insert_at_ground(world, (x, z));
+            }
+            EditorAction::MoveToGround(x, z) => {
+                editor::move_selected_to_ground(world, (x, z));
             }
             EditorAction::Insert(x, y) => {
                 editor::insert_at(world, camera, (x, y));
@@ -459,6 +611,19 @@ impl App {
     /// Sends an editor action; its sequence number.
     fn edit(&mut self, action: EditorAction) -> Option<u64> {
         self.live.send(action.command(self.camera))
+    }
+
+    /// The map panel as drawn now, when it is shown.
+    fn map_view(&self) -> Option<MapView> {
+        let shown = self.shown.as_ref().filter(|_| self.map_shown)?;
+        Some(MapView::new(self.size.0, self.size.1, &shown.map))
+    }
+
+    /// The ground position (x, z) under the cursor when it is over the map panel.
+    fn cursor_on_map(&self) -> Option<glam::Vec2> {
+        let (map, cursor) = self.map_view().zip(self.cursor)?;
+        let (x, y) = (cursor.x as f32, cursor.y as f32);
+        map.contains(x, y).then(|| map.to_world(x, y))
     }
 
     /// The image pixel under the cursor, if it is over the image.
@@ -504,7 +669,7 @@ impl App {
             return;
         };
         window.set_title(&format!(
-            "sylva view: {}, {} frames, {:.0} ms/frame, {:.2} M rays/s, {:.1} m/s, {} (WASD/arrows move, Q/E down/up, drag to look, scroll speed, click select, I insert, M move, Del delete, Ctrl+Z/Y undo/redo, G wind, H HUD, P screenshot, Esc quit)",
+            "sylva view: {}, {} frames, {:.0} ms/frame, {:.2} M rays/s, {:.1} m/s, {} (WASD/arrows move, Q/E down/up, drag to look, scroll speed, click select, I insert, M move, Del delete, Ctrl+Z/Y undo/redo, G wind, Tab map, H HUD, P screenshot, Esc quit)",
             self.label,
             shown.frames,
             shown.frame_time.as_secs_f64() * 1e3,
@@ -681,7 +846,9 @@ impl ApplicationHandler<FrameReady> for App {
                         self.edit(EditorAction::Delete);
                     }
                     (KeyCode::KeyI, ElementState::Pressed) if !event.repeat => {
-                        if let Some((x, y)) = self.cursor_pixel() {
+                        if let Some(at) = self.cursor_on_map() {
+                            self.edit(EditorAction::InsertAtGround(at.x, at.y));
+                        } else if let Some((x, y)) = self.cursor_pixel() {
                             self.edit(EditorAction::Insert(x, y));
                         }
                     }
@@ -705,6 +872,12 @@ impl ApplicationHandler<FrameReady> for App {
                         } else {
                             EditorAction::Undo
                         });
+                    }
+                    (KeyCode::Tab, ElementState::Pressed) if !event.repeat => {
+                        self.map_shown = !self.map_shown;
+                        if let Some(window) = &self.window {
+                            window.request_redraw();
+                        }
                     }
                     (KeyCode::KeyG, ElementState::Pressed) if !event.repeat => {
                         self.wind = !self.wind;
@@ -743,19 +916,43 @@ impl ApplicationHandler<FrameReady> for App {
                     ElementState::Pressed => self.press = self.cursor,
                     ElementState::Released => {
                         // A click (the cursor barely moved) selects what it points at.
-                        let clicked = self
-                            .press
-                            .take()
+                        let press = self.press.take();
+                        let clicked = press
                             .zip(self.cursor)
                             .is_some_and(|(a, b)| (a.x - b.x).abs() + (a.y - b.y).abs() < 4.0);
-                        if clicked && let Some((x, y)) = self.cursor_pixel() {
+                        let on_map = self
+                            .map_view()
+                            .zip(press)
+                            .filter(|(map, p)| map.contains(p.x as f32, p.y as f32));
+                        if let (Some((map, _)), Some(cursor)) = (on_map, self.cursor) {
+                            // On the map a click selects and a drag moves the selection.
+                            let (x, y) = (cursor.x as f32, cursor.y as f32);
+                            if clicked {
+                                let plants = self
+                                    .shown
+                                    .as_ref()
+                                    .map(|s| s.map.clone())
+                                    .unwrap_or_default();
+                                if let Some(plant) = map.plant_at(&plants, x, y) {
+                                    self.edit(EditorAction::SelectPlant(plant));
+                                }
+                            } else if map.contains(x, y) {
+                                let to = map.to_world(x, y);
+                                self.edit(EditorAction::MoveToGround(to.x, to.y));
+                            }
+                        } else if clicked && let Some((x, y)) = self.cursor_pixel() {
                             self.edit(EditorAction::Select(x, y));
                         }
                     }
                 }
             }
             WindowEvent::CursorMoved { position, .. } => {
+                let on_map = self
+                    .map_view()
+                    .zip(self.press)
+                    .is_some_and(|(map, p)| map.contains(p.x as f32, p.y as f32));
                 if self.dragging
+                    && !on_map
                     && let Some(last) = self.cursor
                 {
                     self.look += glam::Vec2::new(
@@ -808,6 +1005,7 @@ impl ApplicationHandler<FrameReady> for App {
 impl App {
     /// Copies the latest frame into the window (black where the window is larger).
     fn present(&mut self) -> Result<()> {
+        let map = self.map_view();
         let (Some(window), Some(surface)) = (&self.window, &mut self.surface) else {
             return Ok(());
         };
@@ -829,6 +1027,9 @@ impl App {
                 let dst = row * size.width as usize;
                 buffer[dst..dst + columns].copy_from_slice(&shown.pixels[src..src + columns]);
             }
+            if let Some(map) = map {
+                map.draw(&mut buffer, size.width as usize, &shown.map, shown.selected);
+            }
             if let Some(hud) = self.hud.as_ref().filter(|_| !self.hud_hidden) {
                 let lines = hud.lines(shown, self.fly.speed);
                 hud.draw(
@@ -849,6 +1050,48 @@ impl App {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn the_map_panel_maps_ground_to_pixels_and_back_and_finds_the_plant_under_a_click() {
+        use sylva::systems::picking::MapPlant;
+        let mut world = World::new();
+        let (a, b) = (world.spawn_empty().id(), world.spawn_empty().id());
+        let plants = [
+            MapPlant {
+                entity: a,
+                position: glam::Vec2::new(-50.0, -50.0),
+                radius: 4.0,
+                species: 1,
+            },
+            MapPlant {
+                entity: b,
+                position: glam::Vec2::new(50.0, 50.0),
+                radius: 0.5,
+                species: 2,
+            },
+        ];
+        let map = MapView::new(640, 480, &plants);
+        assert_eq!(map.side, 216.0);
+        let ground = glam::Vec2::new(12.5, -7.0);
+        let p = map.to_panel(ground);
+        assert!(map.contains(p.x, p.y));
+        assert!((map.to_world(p.x, p.y) - ground).length() < 1e-3);
+        let at_a = map.to_panel(plants[0].position);
+        assert_eq!(map.plant_at(&plants, at_a.x + 1.0, at_a.y), Some(a));
+        let at_b = map.to_panel(plants[1].position);
+        // A small plant is still hit within three pixels.
+        assert_eq!(map.plant_at(&plants, at_b.x + 2.0, at_b.y), Some(b));
+        assert_eq!(map.plant_at(&plants, p.x, p.y), None);
+        let mut buffer = vec![0u32; 640 * 480];
+        map.draw(&mut buffer, 640, &plants, Some(b));
+        let outside = buffer[..640 * 200].iter().all(|&p| p == 0);
+        assert!(outside, "the panel drew above itself");
+        let (ax, ay) = (at_a.x as usize, at_a.y as usize);
+        assert_eq!(buffer[ay * 640 + ax], species_colour(1));
+        let (bx, by) = (at_b.x as usize, at_b.y as usize);
+        assert_eq!(buffer[by * 640 + bx], species_colour(2));
+        assert_eq!(buffer[by * 640 + bx + 4], 0x00ff_ffff, "the selection ring");
+    }
 
     #[test]
     fn the_hud_writes_its_lines_on_a_darkened_band_and_leaves_the_rest() {

@@ -5,7 +5,7 @@
 //! sees the changed transform) and stops at a frame limit, after which the thread sleeps
 //! until the next command.
 
-use crate::picking::Selected;
+use crate::picking::{MapPlant, Selected, map_plants};
 use crate::progressive::{StopAt, refine};
 use crate::{FrameCancel, RenderStats, TopLevelState, frame_schedule, shown_film};
 use bevy_ecs::prelude::*;
@@ -47,6 +47,9 @@ pub struct ShownImage {
     pub top_level: (Duration, Duration),
     /// Time the render thread spent tone-mapping this frame for the window.
     pub tone_map: Duration,
+    /// The plants as the editor's map draws them, as of this frame's top level (shared
+    /// between frames until the plants change).
+    pub map: Arc<Vec<MapPlant>>,
 }
 
 impl ShownImage {
@@ -238,6 +241,8 @@ fn run(
 ) -> World {
     let mut schedule = frame_schedule();
     let mut applied = 0;
+    // The map, and the top-level build and refit counts it was made at.
+    let mut map: (Arc<Vec<MapPlant>>, Option<(u64, u64)>) = (Arc::default(), None);
     loop {
         let converged = world.get::<Film>(camera).map_or(0, Film::frames) >= max_frames;
         // Idle when converged: wait for a command (checking now and then that the
@@ -284,6 +289,13 @@ fn run(
         image.top_level = world
             .get_resource::<TopLevelState>()
             .map_or_else(Default::default, |t| (t.last_build, t.last_refit));
+        let version = world
+            .get_resource::<TopLevelState>()
+            .map(|t| (t.rebuilds, t.refits));
+        if map.1.is_none() || map.1 != version {
+            map = (Arc::new(map_plants(&mut world)), version);
+        }
+        image.map = map.0.clone();
         let stats = world.resource::<RenderStats>();
         image.frame_time = stats.last_render;
         log.lock()

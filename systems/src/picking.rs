@@ -66,3 +66,55 @@ pub fn pick(world: &World, camera: Entity, x: u32, y: u32) -> Option<Picked> {
         distance: hit.t * ray.direction.length(),
     })
 }
+
+/// A plant as the editor's top-down map draws it.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct MapPlant {
+    /// Its entity.
+    pub entity: Entity,
+    /// Where it stands (world x, z).
+    pub position: glam::Vec2,
+    /// Crown radius in metres: half the larger horizontal extent of its mesh, scaled.
+    pub radius: f32,
+    /// Its species (geometry index), for the colour.
+    pub species: u32,
+}
+
+/// Every plant (an entity with an [`Instance`] and a
+/// [`Layer`](sylva_engine::components::Layer)) as the map draws it, in entity order.
+pub fn map_plants(world: &mut World) -> Vec<MapPlant> {
+    use sylva_engine::components::{Instance, Layer};
+    let extents: Vec<f32> = world
+        .get_resource::<GeometryLibrary>()
+        .map(|library| {
+            library
+                .geometries
+                .iter()
+                .map(|g| {
+                    let b = g.bounds();
+                    if b.is_empty() {
+                        0.0
+                    } else {
+                        0.5 * (b.max.x - b.min.x).max(b.max.z - b.min.z)
+                    }
+                })
+                .collect()
+        })
+        .unwrap_or_default();
+    let mut plants: Vec<MapPlant> = world
+        .query_filtered::<(Entity, &Instance, &Transform), With<Layer>>()
+        .iter(world)
+        .map(|(entity, instance, transform)| MapPlant {
+            entity,
+            position: glam::Vec2::new(transform.translation.x, transform.translation.z),
+            radius: extents
+                .get(instance.geometry.0 as usize)
+                .copied()
+                .unwrap_or(0.0)
+                * transform.scale.x.abs().max(transform.scale.z.abs()),
+            species: instance.geometry.0,
+        })
+        .collect();
+    plants.sort_by_key(|p| p.entity);
+    plants
+}

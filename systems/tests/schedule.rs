@@ -726,3 +726,21 @@ fn picking_names_the_entity_whose_surface_the_pixel_shows() {
         Some(plant)
     );
 }
+
+#[test]
+fn the_map_lists_every_plant_with_its_crown_and_not_the_ground() {
+    use sylva_engine::components::Layer;
+    use sylva_systems::picking::map_plants;
+    let mut w = test_world(1);
+    for &plant in &w.plants {
+        w.world.entity_mut(plant).insert(Layer(0));
+    }
+    let map = map_plants(&mut w.world);
+    assert_eq!(map.len(), w.plants.len());
+    for entry in &map {
+        let t = w.world.get::<Transform>(entry.entity).unwrap();
+        assert_eq!(entry.position, Vec2::new(t.translation.x, t.translation.z));
+        // The leaf quad is 2 m wide: a crown radius of 1 m at scale 1.
+        assert!((entry.radius - 1.0).abs() < 1e-3, "{}", entry.radius);
+    }
+}
