@@ -2,6 +2,8 @@
 //! count, clear errors for bad arguments.
 
 use std::path::{Path, PathBuf};
+
+mod common;
 use std::process::{Command, Output};
 
 fn sylva(args: &[&str]) -> Output {
@@ -749,16 +751,7 @@ fn output_images_record_how_they_were_made() {
             out.to_str().unwrap(),
         ]);
     }
-    let decoder = png::Decoder::new(std::io::BufReader::new(
-        std::fs::File::open(&png_path).unwrap(),
-    ));
-    let reader = decoder.read_info().unwrap();
-    let text: std::collections::HashMap<String, String> = reader
-        .info()
-        .uncompressed_latin1_text
-        .iter()
-        .map(|t| (t.keyword.clone(), t.text.clone()))
-        .collect();
+    let text = common::png_text(&png_path);
     assert_eq!(
         text.get("sylva.spp").map(String::as_str),
         Some("6"),

@@ -8,6 +8,8 @@
 use std::path::{Path, PathBuf};
 use std::process::{Command, Output};
 
+mod common;
+
 fn temp_dir(name: &str) -> PathBuf {
     let dir = std::env::temp_dir().join(format!("sylva-view-{name}-{}", std::process::id()));
     std::fs::create_dir_all(&dir).unwrap();
@@ -69,19 +71,7 @@ fn a_scripted_walkthrough_shows_what_render_makes_and_changes_when_the_camera_mo
         ),
     )
     .unwrap();
-    let run = view_on_xvfb(&[
-        "--width",
-        "96",
-        "--height",
-        "72",
-        "--script",
-        script.to_str().unwrap(),
-    ]);
-    assert!(
-        run.status.success(),
-        "{}",
-        String::from_utf8_lossy(&run.stderr)
-    );
+    run_script(&script);
 
     // The window's first view after two frames is the interactive render's image.
     let (shown, w, h) = rgb(&first);
@@ -91,17 +81,7 @@ fn a_scripted_walkthrough_shows_what_render_makes_and_changes_when_the_camera_mo
     assert_eq!(differing, 0, "the window shows another image than render");
 
     // The screenshot says what it shows.
-    let reader = png::Decoder::new(std::io::BufReader::new(
-        std::fs::File::open(&first).unwrap(),
-    ))
-    .read_info()
-    .unwrap();
-    let text: std::collections::HashMap<String, String> = reader
-        .info()
-        .uncompressed_latin1_text
-        .iter()
-        .map(|t| (t.keyword.clone(), t.text.clone()))
-        .collect();
+    let text = common::png_text(&first);
     assert_eq!(
         text.get("sylva.frames").map(String::as_str),
         Some("2"),
@@ -148,6 +128,23 @@ fn without_a_display_view_says_so_and_bad_scripts_name_their_line() {
         "{stderr}"
     );
     std::fs::remove_dir_all(&dir).ok();
+}
+
+/// Runs `sylva view` at 96×72 on the script at `path`, which must succeed.
+fn run_script(path: &Path) {
+    let run = view_on_xvfb(&[
+        "--width",
+        "96",
+        "--height",
+        "72",
+        "--script",
+        path.to_str().unwrap(),
+    ]);
+    assert!(
+        run.status.success(),
+        "{}",
+        String::from_utf8_lossy(&run.stderr)
+    );
 }
 
 /// RGB bytes of `sylva render --preset interactive --frames 2` at 96×72 written to `out`,
@@ -197,19 +194,7 @@ fn screenshots_of_steps(name: &str, steps: &[&str]) -> Vec<Vec<u8>> {
         .collect();
     let path = dir.join("script.toml");
     std::fs::write(&path, script).unwrap();
-    let run = view_on_xvfb(&[
-        "--width",
-        "96",
-        "--height",
-        "72",
-        "--script",
-        path.to_str().unwrap(),
-    ]);
-    assert!(
-        run.status.success(),
-        "{}",
-        String::from_utf8_lossy(&run.stderr)
-    );
+    run_script(&path);
     let images = (0..steps.len()).map(|i| rgb(&shot(i)).0).collect();
     std::fs::remove_dir_all(&dir).ok();
     images
