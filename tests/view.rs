@@ -267,3 +267,100 @@ fn a_saved_ecosystem_renders_what_the_window_showed() {
     );
     std::fs::remove_dir_all(&dir).ok();
 }
+
+#[test]
+fn a_recorded_walkthrough_replays_to_the_same_scene_and_every_shown_frame_is_saved() {
+    let dir = temp_dir("record");
+    let (saved, recording, frames) = (
+        dir.join("edited.toml"),
+        dir.join("recorded.toml"),
+        dir.join("frames"),
+    );
+    let script = dir.join("script.toml");
+    std::fs::write(
+        &script,
+        format!(
+            "[[step]]\nframes = 2\n\n\
+             [[step]]\nselect = [63, 20]\ndelete = true\nframes = 2\n\n\
+             [[step]]\nmap_insert = [1.5, 2.5]\nframes = 2\n\n\
+             [[step]]\nposition = [5, 3, 20]\nlook_at = [0, 1, 0]\nframes = 2\n\n\
+             [[step]]\nsave = {:?}\nquit = true\n",
+            saved.to_str().unwrap()
+        ),
+    )
+    .unwrap();
+    let size = ["--width", "96", "--height", "72"];
+    let record = view_on_xvfb(
+        &[
+            &size[..],
+            &["--script", script.to_str().unwrap()],
+            &["--record", recording.to_str().unwrap()],
+            &["--frames-out", frames.to_str().unwrap()],
+        ]
+        .concat(),
+    );
+    assert!(
+        record.status.success(),
+        "{}",
+        String::from_utf8_lossy(&record.stderr)
+    );
+    let edited = std::fs::read_to_string(&saved).unwrap();
+
+    // The recording holds the camera's stops and the edits, and replays to the same scene.
+    let text = std::fs::read_to_string(&recording).unwrap();
+    for key in [
+        "rotation",
+        "delete = true",
+        "map_insert",
+        "save",
+        "quit = true",
+    ] {
+        assert!(text.contains(key), "no {key} in the recording:\n{text}");
+    }
+    std::fs::remove_file(&saved).unwrap();
+    let replay = view_on_xvfb(&[&size[..], &["--script", recording.to_str().unwrap()]].concat());
+    assert!(
+        replay.status.success(),
+        "{}",
+        String::from_utf8_lossy(&replay.stderr)
+    );
+    assert_eq!(
+        std::fs::read_to_string(&saved).unwrap(),
+        edited,
+        "the replayed walkthrough saved another scene"
+    );
+
+    // Every shown frame was saved; none is blank, and the accumulation restarts (with a
+    // changed image) after the delete, the insert and the move.
+    let mut files: Vec<PathBuf> = std::fs::read_dir(&frames)
+        .unwrap()
+        .map(|e| e.unwrap().path())
+        .collect();
+    files.sort();
+    assert!(files.len() >= 8, "{} frames saved", files.len());
+    let mut restarts = 0;
+    let mut previous: Option<(u32, Vec<u8>)> = None;
+    for file in &files {
+        let (pixels, w, h) = rgb(file);
+        assert_eq!((w, h), (96, 72));
+        assert!(
+            pixels.chunks_exact(3).any(|p| p != &pixels[..3]),
+            "{} is blank",
+            file.display()
+        );
+        let accumulated: u32 = common::png_text(file)["sylva.frames"].parse().unwrap();
+        if let Some((count, image)) = &previous
+            && accumulated <= *count
+        {
+            restarts += 1;
+            assert!(
+                changed_pixels(image, &pixels) > 0,
+                "{} restarted without a change",
+                file.display()
+            );
+        }
+        previous = Some((accumulated, pixels));
+    }
+    assert!(restarts >= 3, "{restarts} restarts among the shown frames");
+    std::fs::remove_dir_all(&dir).ok();
+}

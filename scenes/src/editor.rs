@@ -276,6 +276,20 @@ pub fn move_selected_to_ground(world: &mut World, (x, z): (f32, f32)) -> bool {
     })
 }
 
+/// Selects the plant whose stem stands nearest to ground position `(x, z)` among those
+/// whose crown covers it (ties to the first in entity order), or nothing; returns it.
+/// What a click on the map does, as a script replays it.
+pub fn select_at_ground(world: &mut World, (x, z): (f32, f32)) -> Option<Entity> {
+    let at = glam::Vec2::new(x, z);
+    let nearest = sylva_systems::picking::map_plants(world)
+        .into_iter()
+        .map(|plant| (plant.position.distance(at), plant))
+        .filter(|(distance, plant)| *distance <= plant.radius)
+        .min_by(|a, b| a.0.total_cmp(&b.0))
+        .map(|(_, plant)| plant.entity);
+    select(world, nearest)
+}
+
 /// Selects `plant` when it is a plant (an entity with a [`Layer`]), or nothing.
 pub fn select(world: &mut World, plant: Option<Entity>) -> Option<Entity> {
     let plant = plant.filter(|&e| world.get::<Layer>(e).is_some());
@@ -686,5 +700,40 @@ mod tests {
         history.delete(&mut world, plants[0]);
         assert!(!history.redo(&mut world));
         assert_eq!(history.undoable(), 3);
+    }
+
+    #[test]
+    fn a_map_click_selects_the_nearest_plant_whose_crown_covers_it() {
+        use sylva_engine::bvh::BuildParams;
+        use sylva_engine::geometry::Geometry;
+        use sylva_engine::mesh::TriangleMesh;
+        let (mut world, plants) = meadow();
+        // Crowns of radius 2, times each plant's size (1.0, 1.1, 1.2, 1.3): neighbours'
+        // crowns overlap.
+        let mut library = GeometryLibrary::default();
+        for name in ["a", "b"] {
+            let mesh = TriangleMesh {
+                positions: vec![
+                    Vec3::new(-2.0, 0.0, -2.0),
+                    Vec3::new(2.0, 0.0, -2.0),
+                    Vec3::new(0.0, 2.0, 2.0),
+                ],
+                normals: vec![],
+                uvs: vec![],
+                indices: vec![[0, 1, 2]],
+                shaders: vec![0],
+            };
+            library.add(Geometry::new(name, mesh, BuildParams::BALANCED).unwrap());
+        }
+        world.insert_resource(library);
+        // Plants stand at x = 0, 3, 6, 9 (z = 1).
+        assert_eq!(select_at_ground(&mut world, (3.0, 1.0)), Some(plants[1]));
+        assert_eq!(world.resource::<Selected>().0, Some(plants[1]));
+        // Between two crowns, the nearer stem wins.
+        assert_eq!(select_at_ground(&mut world, (4.4, 1.0)), Some(plants[1]));
+        assert_eq!(select_at_ground(&mut world, (4.6, 1.0)), Some(plants[2]));
+        // Outside every crown: nothing, and the selection is cleared.
+        assert_eq!(select_at_ground(&mut world, (3.0, 4.0)), None);
+        assert_eq!(world.resource::<Selected>().0, None);
     }
 }

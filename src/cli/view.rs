@@ -11,7 +11,9 @@ use std::rc::Rc;
 use std::time::Instant;
 use sylva::scenes::editor;
 use sylva::systems::live::{LiveCommand, LiveRender, ShownImage};
-use sylva::systems::walkthrough::{FlyCamera, FlyInput, WalkthroughScript};
+use sylva::systems::walkthrough::{
+    FlyCamera, FlyInput, ScriptRecorder, ScriptStep, WalkthroughScript,
+};
 use winit::application::ApplicationHandler;
 use winit::dpi::{PhysicalPosition, PhysicalSize};
 use winit::event::{ElementState, Modifiers, MouseButton, MouseScrollDelta, WindowEvent};
@@ -48,10 +50,18 @@ pub(crate) struct ViewArgs {
     /// stands) [default: NAME-edited.toml in the current directory].
     #[arg(long, value_name = "FILE")]
     save: Option<PathBuf>,
-    /// Fly a scripted walkthrough: TOML `[[step]]` tables with `position`, `look_at`,
-    /// `frames` (wait for that many accumulated frames), `screenshot` (PNG) and `quit`.
+    /// Fly a scripted walkthrough: TOML `[[step]]` tables with `position`, `look_at` or
+    /// `rotation`, edits (`select`, `insert`, `move`, `map_select`, `delete`, `undo`, …),
+    /// `frames` (wait for that many accumulated frames), `save`, `screenshot` and `quit`.
     #[arg(long, value_name = "FILE")]
     script: Option<PathBuf>,
+    /// Write what happens in the window as a script `--script` replays: each camera rest
+    /// (exact pose, frames watched), edit, save, screenshot and the quit.
+    #[arg(long, value_name = "FILE")]
+    record: Option<PathBuf>,
+    /// Save every frame the window shows as DIR/frame_NNNNN.png (with its metadata).
+    #[arg(long, value_name = "DIR")]
+    frames_out: Option<PathBuf>,
 }
 
 /// Sent by the render thread when a frame is ready.
@@ -81,6 +91,23 @@ pub(crate) fn run(args: ViewArgs) -> Result<()> {
         }
         None => None,
     };
+    if let Some(record) = &args.record {
+        let dir = record
+            .parent()
+            .filter(|d| !d.as_os_str().is_empty())
+            .unwrap_or(Path::new("."));
+        if !dir.is_dir() {
+            bail!(
+                "{}: the directory {} does not exist",
+                record.display(),
+                dir.display()
+            );
+        }
+    }
+    if let Some(dir) = &args.frames_out {
+        std::fs::create_dir_all(dir)
+            .map_err(|e| anyhow::anyhow!("{}: cannot create the directory: {e}", dir.display()))?;
+    }
     if cfg!(target_os = "linux") && std::env::var_os("DISPLAY").is_none_or(|d| d.is_empty()) {
         bail!(
             "no display: `sylva view` opens an X11 window and DISPLAY is not set (run it in a \
@@ -173,10 +200,32 @@ pub(crate) fn run(args: ViewArgs) -> Result<()> {
         }),
         screenshots: 0,
         error: None,
+        pose: start_pose,
+        moving: false,
+        recorder: args
+            .record
+            .clone()
+            .map(|path| (path, ScriptRecorder::default())),
+        frames_out: args.frames_out.clone().map(FrameWriter::start),
     };
     event_loop.run_app(&mut app)?;
+    let written = app.frames_out.take().map(FrameWriter::finish).transpose();
+    if let Some((path, recorder)) = &app.recorder {
+        let script = recorder.script(app.shown.as_ref().map_or(1, |s| s.frames));
+        sylva::engine::film::write_atomically(path, |tmp| {
+            std::fs::write(tmp, script.to_toml()).map_err(|e| e.to_string())
+        })?;
+        eprintln!(
+            "recorded {} steps to {}",
+            script.steps.len(),
+            path.display()
+        );
+    }
     if let Some(error) = app.error.take() {
         return Err(error);
+    }
+    if let Some(frames) = written? {
+        eprintln!("saved {frames} frames");
     }
     if let Some(script) = &app.script {
         println!(
@@ -303,6 +352,74 @@ struct App {
     script: Option<ScriptRun>,
     screenshots: u32,
     error: Option<anyhow::Error>,
+    /// The camera pose last sent to the renderer.
+    pose: Transform,
+    /// The camera moved at the last step (its coming to rest is recorded).
+    moving: bool,
+    /// `--record`: where the walkthrough goes, and what it holds so far.
+    recorder: Option<(PathBuf, ScriptRecorder)>,
+    /// `--frames-out`: the writer of every shown frame.
+    frames_out: Option<FrameWriter>,
+}
+
+/// Writes shown frames as numbered PNGs on a thread of its own, so the window does not
+/// wait on the encoder; a bounded queue makes the window wait rather than drop a frame.
+struct FrameWriter {
+    queue: Option<std::sync::mpsc::SyncSender<ShownImage>>,
+    writer: std::thread::JoinHandle<Result<u32>>,
+}
+
+impl FrameWriter {
+    fn start(dir: PathBuf) -> Self {
+        let (queue, frames) = std::sync::mpsc::sync_channel::<ShownImage>(4);
+        let writer = std::thread::spawn(move || {
+            let mut written = 0;
+            for image in frames {
+                written += 1;
+                let path = dir.join(format!("frame_{written:05}.png"));
+                let rgba: Vec<u8> = image
+                    .pixels
+                    .iter()
+                    .flat_map(|p| [(p >> 16) as u8, (p >> 8) as u8, *p as u8, 255])
+                    .collect();
+                let metadata = [
+                    (
+                        "Software",
+                        format!("sylva {} view", env!("CARGO_PKG_VERSION")),
+                    ),
+                    ("sylva.frames", image.frames.to_string()),
+                    ("sylva.quality", "interactive".to_string()),
+                ]
+                .map(|(k, v)| (k.to_string(), v));
+                sylva::engine::film::write_rgba8_png(
+                    &path,
+                    (image.width, image.height),
+                    &rgba,
+                    &metadata,
+                )?;
+            }
+            Ok(written)
+        });
+        Self {
+            queue: Some(queue),
+            writer,
+        }
+    }
+
+    /// Queues a frame; false when the writer has stopped (its error comes with `finish`).
+    fn push(&self, image: &ShownImage) -> bool {
+        self.queue
+            .as_ref()
+            .is_some_and(|queue| queue.send(image.clone()).is_ok())
+    }
+
+    /// Waits for the queued frames to be written; how many were.
+    fn finish(mut self) -> Result<u32> {
+        self.queue.take();
+        self.writer
+            .join()
+            .map_err(|_| anyhow::anyhow!("the frame writer panicked"))?
+    }
 }
 
 /// Radians of turn per pixel of mouse drag.
@@ -564,6 +681,9 @@ enum EditorAction {
     Wind(bool),
     /// Select this plant (from the map).
     SelectPlant(Entity),
+    /// Select the plant whose crown covers a ground position (x, z) (a script's map
+    /// click).
+    SelectAtGround(f32, f32),
     /// Plant at a ground position (x, z) (from the map).
     InsertAtGround(f32, f32),
     /// Move the selection to a ground position (x, z) (from the map).
@@ -578,6 +698,9 @@ impl EditorAction {
             }
             EditorAction::SelectPlant(plant) => {
                 editor::select(world, Some(plant));
+            }
+            EditorAction::SelectAtGround(x, z) => {
+                editor::select_at_ground(world, (x, z));
             }
             EditorAction::InsertAtGround(x, z) => {
                 editor::insert_at_ground(world, (x, z));
@@ -608,9 +731,83 @@ impl EditorAction {
 }
 
 impl App {
-    /// Sends an editor action; its sequence number.
+    /// Sends an editor action the user made (recorded with `--record`); its sequence
+    /// number.
     fn edit(&mut self, action: EditorAction) -> Option<u64> {
+        let step = match action {
+            EditorAction::Select(x, y) => ScriptStep {
+                select: Some([x, y]),
+                ..ScriptStep::default()
+            },
+            EditorAction::Insert(x, y) => ScriptStep {
+                insert: Some([x, y]),
+                ..ScriptStep::default()
+            },
+            EditorAction::Move(x, y) => ScriptStep {
+                move_to: Some([x, y]),
+                ..ScriptStep::default()
+            },
+            EditorAction::Delete => ScriptStep {
+                delete: true,
+                ..ScriptStep::default()
+            },
+            EditorAction::Undo => ScriptStep {
+                undo: true,
+                ..ScriptStep::default()
+            },
+            EditorAction::Redo => ScriptStep {
+                redo: true,
+                ..ScriptStep::default()
+            },
+            EditorAction::Wind(on) => ScriptStep {
+                wind: Some(on),
+                ..ScriptStep::default()
+            },
+            EditorAction::SelectAtGround(x, z) => ScriptStep {
+                map_select: Some([x, z]),
+                ..ScriptStep::default()
+            },
+            EditorAction::SelectPlant(plant) => ScriptStep {
+                map_select: self
+                    .shown
+                    .as_ref()
+                    .and_then(|s| s.map.iter().find(|p| p.entity == plant))
+                    .map(|p| p.position.to_array()),
+                ..ScriptStep::default()
+            },
+            EditorAction::InsertAtGround(x, z) => ScriptStep {
+                map_insert: Some([x, z]),
+                ..ScriptStep::default()
+            },
+            EditorAction::MoveToGround(x, z) => ScriptStep {
+                map_move: Some([x, z]),
+                ..ScriptStep::default()
+            },
+        };
+        self.record(step);
         self.live.send(action.command(self.camera))
+    }
+
+    /// Records `step` with `--record`, at the pose last sent.
+    fn record(&mut self, step: ScriptStep) {
+        let shown_frames = self.shown.as_ref().map_or(1, |s| s.frames);
+        if let Some((_, recorder)) = &mut self.recorder {
+            recorder.record(&self.pose, shown_frames, step);
+        }
+    }
+
+    /// Records the end of the walkthrough (a script's own quit step is recorded with it).
+    fn record_quit(&mut self) {
+        self.record(ScriptStep {
+            quit: true,
+            ..ScriptStep::default()
+        });
+    }
+
+    /// Sends a camera pose; its sequence number.
+    fn send_pose(&mut self, pose: Transform) -> Option<u64> {
+        self.pose = pose;
+        self.live.send(LiveCommand::Pose(pose))
     }
 
     /// The map panel as drawn now, when it is shown.
@@ -751,19 +948,25 @@ impl App {
                     // A step that stays where the camera is sends nothing: a pose that
                     // differs in the last bit would restart the accumulation.
                     let command = if WalkthroughScript::moves(&step) {
-                        let pose = WalkthroughScript::pose(&step, &self.fly.transform());
+                        let pose = WalkthroughScript::pose(&step, &self.pose);
                         self.fly = FlyCamera::from_transform(&pose, self.fly.speed);
-                        let Some(command) = self.live.send(LiveCommand::Pose(pose)) else {
+                        let Some(command) = self.send_pose(pose) else {
                             return self.fail(event_loop, anyhow::anyhow!("the renderer stopped"));
                         };
                         command
                     } else {
                         self.live.last_sent()
                     };
+                    self.record(step.clone());
                     let actions = [
                         step.select.map(|[x, y]| EditorAction::Select(x, y)),
+                        step.map_select
+                            .map(|[x, z]| EditorAction::SelectAtGround(x, z)),
                         step.insert.map(|[x, y]| EditorAction::Insert(x, y)),
+                        step.map_insert
+                            .map(|[x, z]| EditorAction::InsertAtGround(x, z)),
                         step.move_to.map(|[x, y]| EditorAction::Move(x, y)),
+                        step.map_move.map(|[x, z]| EditorAction::MoveToGround(x, z)),
                         step.delete.then_some(EditorAction::Delete),
                         step.undo.then_some(EditorAction::Undo),
                         step.redo.then_some(EditorAction::Redo),
@@ -771,7 +974,7 @@ impl App {
                     ];
                     let mut command = command;
                     for action in actions.into_iter().flatten() {
-                        let Some(number) = self.edit(action) else {
+                        let Some(number) = self.live.send(action.command(self.camera)) else {
                             return self.fail(event_loop, anyhow::anyhow!("the renderer stopped"));
                         };
                         command = number;
@@ -822,6 +1025,15 @@ impl ApplicationHandler<FrameReady> for App {
 
     fn user_event(&mut self, event_loop: &ActiveEventLoop, _: FrameReady) {
         if let Some(image) = self.live.take_latest() {
+            if let Some(writer) = &self.frames_out
+                && !writer.push(&image)
+            {
+                self.frames_out.take();
+                return self.fail(
+                    event_loop,
+                    anyhow::anyhow!("saving the shown frames failed"),
+                );
+            }
             self.shown = Some(image);
             self.update_title();
             if let Some(window) = &self.window {
@@ -833,13 +1045,19 @@ impl ApplicationHandler<FrameReady> for App {
 
     fn window_event(&mut self, event_loop: &ActiveEventLoop, _: WindowId, event: WindowEvent) {
         match event {
-            WindowEvent::CloseRequested => event_loop.exit(),
+            WindowEvent::CloseRequested => {
+                self.record_quit();
+                event_loop.exit();
+            }
             WindowEvent::KeyboardInput { event, .. } => {
                 let PhysicalKey::Code(code) = event.physical_key else {
                     return;
                 };
                 match (code, event.state) {
-                    (KeyCode::Escape, ElementState::Pressed) => event_loop.exit(),
+                    (KeyCode::Escape, ElementState::Pressed) => {
+                        self.record_quit();
+                        event_loop.exit();
+                    }
                     (KeyCode::Delete | KeyCode::Backspace, ElementState::Pressed)
                         if !event.repeat =>
                     {
@@ -861,6 +1079,10 @@ impl ApplicationHandler<FrameReady> for App {
                         if self.modifiers.state().control_key() && !event.repeat =>
                     {
                         self.held.remove(&KeyCode::KeyS);
+                        self.record(ScriptStep {
+                            save: Some(self.saving.path.clone()),
+                            ..ScriptStep::default()
+                        });
                         self.live.send(self.saving.command(None));
                     }
                     (KeyCode::KeyZ | KeyCode::KeyY, ElementState::Pressed)
@@ -894,6 +1116,11 @@ impl ApplicationHandler<FrameReady> for App {
                         let path = PathBuf::from(format!("sylva-view-{:03}.png", self.screenshots));
                         if let Err(e) = self.screenshot(&path) {
                             eprintln!("warning: {e:#}");
+                        } else {
+                            self.record(ScriptStep {
+                                screenshot: Some(path),
+                                ..ScriptStep::default()
+                            });
                         }
                     }
                     (code, ElementState::Pressed) => {
@@ -985,10 +1212,14 @@ impl ApplicationHandler<FrameReady> for App {
         (self.look, self.scroll) = (glam::Vec2::ZERO, 0.0);
         let scrolled = input.speed_steps != 0.0;
         if self.fly.step(&input, seconds) {
+            self.moving = true;
             let pose = self.fly.transform();
-            if self.live.send(LiveCommand::Pose(pose)).is_none() {
+            if self.send_pose(pose).is_none() {
                 return self.fail(event_loop, anyhow::anyhow!("the renderer stopped"));
             }
+        } else if std::mem::take(&mut self.moving) {
+            // Come to rest: a stop of the recorded walkthrough.
+            self.record(ScriptStep::default());
         }
         if scrolled {
             self.update_title();

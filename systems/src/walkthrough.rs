@@ -102,47 +102,70 @@ impl FlyCamera {
 }
 
 /// One stop of a scripted walkthrough: where to stand, how long to refine, what to save.
-#[derive(Clone, Debug, Default, PartialEq, serde::Deserialize)]
+#[derive(Clone, Debug, Default, PartialEq, serde::Deserialize, serde::Serialize)]
 #[serde(deny_unknown_fields)]
 pub struct ScriptStep {
     /// Where the camera moves to (it keeps its orientation without `look_at`).
+    #[serde(skip_serializing_if = "Option::is_none")]
     pub position: Option<[f32; 3]>,
+    /// The camera's exact orientation, a unit quaternion `[x, y, z, w]` (what `--record`
+    /// writes); `look_at` takes precedence.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub rotation: Option<[f32; 4]>,
     /// The point the camera turns to.
+    #[serde(skip_serializing_if = "Option::is_none")]
     pub look_at: Option<[f32; 3]>,
     /// Then walk this many metres along the camera's heading (level, as the keys do).
+    #[serde(skip_serializing_if = "Option::is_none")]
     pub advance: Option<f32>,
     /// Wait until the shown image holds this many accumulated frames (default 1).
+    #[serde(skip_serializing_if = "Option::is_none")]
     pub frames: Option<u32>,
     /// Select the plant seen at this pixel (`[x, y]` from the top-left corner).
+    #[serde(skip_serializing_if = "Option::is_none")]
     pub select: Option<[u32; 2]>,
+    /// Select the plant whose crown covers this ground position `[x, z]` (the map's
+    /// click), the one whose stem is nearest.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub map_select: Option<[f32; 2]>,
     /// Delete the selected plant.
-    #[serde(default)]
+    #[serde(default, skip_serializing_if = "std::ops::Not::not")]
     pub delete: bool,
     /// Plant one of the selected plant's species (or of the first species) where this
     /// pixel meets the ground or a plant.
+    #[serde(skip_serializing_if = "Option::is_none")]
     pub insert: Option<[u32; 2]>,
+    /// Plant as `insert` does, at this ground position `[x, z]`.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub map_insert: Option<[f32; 2]>,
     /// Move the selected plant to where this pixel meets the ground or a plant.
-    #[serde(rename = "move")]
+    #[serde(rename = "move", skip_serializing_if = "Option::is_none")]
     pub move_to: Option<[u32; 2]>,
+    /// Move the selected plant to this ground position `[x, z]`.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub map_move: Option<[f32; 2]>,
     /// Take back the latest edit.
-    #[serde(default)]
+    #[serde(default, skip_serializing_if = "std::ops::Not::not")]
     pub undo: bool,
     /// Make the latest undone edit again.
-    #[serde(default)]
+    #[serde(default, skip_serializing_if = "std::ops::Not::not")]
     pub redo: bool,
     /// Turn the wind on or off.
+    #[serde(skip_serializing_if = "Option::is_none")]
     pub wind: Option<bool>,
     /// Save the edited ecosystem as a scene file here (after this step's edits).
+    #[serde(skip_serializing_if = "Option::is_none")]
     pub save: Option<std::path::PathBuf>,
     /// Save the shown image (PNG) once the frames are there.
+    #[serde(skip_serializing_if = "Option::is_none")]
     pub screenshot: Option<std::path::PathBuf>,
     /// End the walkthrough after this step.
-    #[serde(default)]
+    #[serde(default, skip_serializing_if = "std::ops::Not::not")]
     pub quit: bool,
 }
 
 /// A scripted walkthrough: steps run in order, each after the previous one's frames.
-#[derive(Clone, Debug, Default, PartialEq, serde::Deserialize)]
+#[derive(Clone, Debug, Default, PartialEq, serde::Deserialize, serde::Serialize)]
 #[serde(deny_unknown_fields)]
 pub struct WalkthroughScript {
     /// The stops.
@@ -155,13 +178,25 @@ impl WalkthroughScript {
     pub fn parse(text: &str) -> Result<Self, String> {
         let script: Self = toml::from_str(text).map_err(|e| e.to_string())?;
         for (i, step) in script.steps.iter().enumerate() {
-            let finite = |v: &Option<[f32; 3]>| v.is_none_or(|v| v.iter().all(|c| c.is_finite()));
-            if !finite(&step.position)
-                || !finite(&step.look_at)
+            let finite = |v: Option<&[f32]>| v.is_none_or(|v| v.iter().all(|c| c.is_finite()));
+            if !finite(step.position.as_ref().map(|v| &v[..]))
+                || !finite(step.look_at.as_ref().map(|v| &v[..]))
+                || !finite(step.rotation.as_ref().map(|v| &v[..]))
+                || [step.map_select, step.map_insert, step.map_move]
+                    .iter()
+                    .any(|v| !finite(v.as_ref().map(|v| &v[..])))
                 || step.advance.is_some_and(|a| !a.is_finite())
             {
                 return Err(format!(
                     "step {}: coordinates must be finite numbers",
+                    i + 1
+                ));
+            }
+            if let Some(q) = step.rotation
+                && (Quat::from_array(q).length() - 1.0).abs() > 1e-3
+            {
+                return Err(format!(
+                    "step {}: rotation must be a unit quaternion [x, y, z, w]",
                     i + 1
                 ));
             }
@@ -182,6 +217,7 @@ impl WalkthroughScript {
             }
             _ => Transform {
                 translation: eye,
+                rotation: step.rotation.map_or(current.rotation, Quat::from_array),
                 ..*current
             },
         };
@@ -195,7 +231,67 @@ impl WalkthroughScript {
 
     /// True when `step` moves or turns the camera.
     pub fn moves(step: &ScriptStep) -> bool {
-        step.position.is_some() || step.look_at.is_some() || step.advance.is_some()
+        step.position.is_some()
+            || step.rotation.is_some()
+            || step.look_at.is_some()
+            || step.advance.is_some()
+    }
+
+    /// The script as TOML `[[step]]` tables, which [`parse`](Self::parse) reads back to
+    /// the same steps.
+    pub fn to_toml(&self) -> String {
+        toml::to_string(self).expect("a script's keys and values all have TOML forms")
+    }
+}
+
+/// Writes what a user does in the viewer as a [`WalkthroughScript`] (`sylva view
+/// --record`): each step is an edit, a save, a screenshot, a quit or a camera rest, with
+/// the exact camera pose when it changed since the last step, and the frames the user
+/// watched before the next step (so a replay refines as far).
+#[derive(Clone, Debug, Default)]
+pub struct ScriptRecorder {
+    steps: Vec<ScriptStep>,
+    /// The pose of the latest step that set one, as its bits.
+    pose: Option<([f32; 3], [f32; 4])>,
+}
+
+impl ScriptRecorder {
+    /// Records `step` (its pose keys are ignored) made with the camera at `pose`, after
+    /// the previous step was shown for `shown_frames` accumulated frames. A step that
+    /// does nothing is recorded only when the camera has moved.
+    pub fn record(&mut self, pose: &Transform, shown_frames: u32, step: ScriptStep) {
+        let pose_bits = (pose.translation.to_array(), pose.rotation.to_array());
+        let moved = self.pose != Some(pose_bits);
+        let step = ScriptStep {
+            position: moved.then_some(pose_bits.0),
+            rotation: moved.then_some(pose_bits.1),
+            look_at: None,
+            advance: None,
+            frames: None,
+            ..step
+        };
+        if step == ScriptStep::default() {
+            return;
+        }
+        self.close(shown_frames);
+        self.pose = Some(pose_bits);
+        self.steps.push(step);
+    }
+
+    /// Sets the latest step's frames (kept only above the default of 1).
+    fn close(&mut self, shown_frames: u32) {
+        if let Some(last) = self.steps.last_mut() {
+            last.frames = (shown_frames > 1).then_some(shown_frames);
+        }
+    }
+
+    /// The walkthrough so far, its latest step shown for `shown_frames`.
+    pub fn script(&self, shown_frames: u32) -> WalkthroughScript {
+        let mut recorder = self.clone();
+        recorder.close(shown_frames);
+        WalkthroughScript {
+            steps: recorder.steps,
+        }
     }
 }
 
@@ -323,5 +419,63 @@ mod tests {
         assert!((fly.speed - 2.0 * SPEED_STEP * SPEED_STEP).abs() < 1e-5);
         assert_eq!(fly.position, Vec3::ZERO);
         assert!(!fly.step(&FlyInput::default(), f32::NAN));
+    }
+
+    #[test]
+    fn a_recording_keeps_exact_poses_and_frames_and_reads_back_as_written() {
+        let start = Transform::looking_at(Vec3::new(1.0, 2.0, 3.0), Vec3::ZERO, Vec3::Y);
+        let mut moved = start;
+        moved.translation += Vec3::new(0.1, 0.0, -0.3);
+        let mut recorder = ScriptRecorder::default();
+        // A rest where the camera started, watched for 12 frames; an edit there; a rest
+        // that did not move is not a step; then a move, a map edit and a quit.
+        recorder.record(&start, 1, ScriptStep::default());
+        recorder.record(
+            &start,
+            12,
+            ScriptStep {
+                select: Some([10, 20]),
+                delete: true,
+                ..ScriptStep::default()
+            },
+        );
+        recorder.record(&start, 3, ScriptStep::default());
+        recorder.record(
+            &moved,
+            5,
+            ScriptStep {
+                map_insert: Some([4.5, -2.25]),
+                ..ScriptStep::default()
+            },
+        );
+        recorder.record(
+            &moved,
+            7,
+            ScriptStep {
+                quit: true,
+                ..ScriptStep::default()
+            },
+        );
+        let script = recorder.script(1);
+        let steps = &script.steps;
+        assert_eq!(steps.len(), 4, "{steps:?}");
+        assert_eq!(steps[0].position, Some(start.translation.to_array()));
+        assert_eq!(steps[0].rotation, Some(start.rotation.to_array()));
+        assert_eq!(steps[0].frames, Some(12));
+        assert_eq!((steps[1].position, steps[1].frames), (None, Some(5)));
+        assert!(steps[1].delete && steps[1].select == Some([10, 20]));
+        assert_eq!(steps[2].position, Some(moved.translation.to_array()));
+        assert_eq!(steps[2].frames, Some(7));
+        assert!(steps[3].quit && steps[3].frames.is_none() && steps[3].position.is_none());
+
+        let text = script.to_toml();
+        let back = WalkthroughScript::parse(&text).unwrap();
+        assert_eq!(back, script, "{text}");
+        // Replayed, the poses come back bit for bit.
+        let pose = WalkthroughScript::pose(&back.steps[2], &Transform::IDENTITY);
+        assert_eq!(pose.translation.to_array(), moved.translation.to_array());
+        assert_eq!(pose.rotation.to_array(), moved.rotation.to_array());
+        let skewed = WalkthroughScript::parse("[[step]]\nrotation = [0, 0, 0, 2]\n").unwrap_err();
+        assert!(skewed.contains("unit quaternion"), "{skewed}");
     }
 }
