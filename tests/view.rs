@@ -202,14 +202,16 @@ fn screenshots_of_steps(name: &str, steps: &[&str]) -> Vec<Vec<u8>> {
 
 #[test]
 fn edits_in_the_window_show_up_and_undo_restores_the_image_bit_for_bit() {
-    // The default meadow at 96×72: pixel (63, 20) shows the big tree's crown.
+    // The default meadow at 96×72: pixel (63, 20) shows the big tree's crown; pixel
+    // (20, 42) ground 7 m from every tree (the tree layer's spacing; the near grass
+    // layer is full: no grass may be planted there).
     let images = screenshots_of_steps(
         "edit",
         &[
             "frames = 2",
             "select = [63, 20]\ndelete = true\nframes = 2",
             "undo = true\nframes = 2",
-            "insert = [48, 50]\nframes = 2",
+            "select = [63, 20]\ninsert = [20, 42]\nframes = 2",
             "undo = true\nframes = 2\nquit = true",
         ],
     );
@@ -253,14 +255,20 @@ fn a_saved_ecosystem_renders_what_the_window_showed() {
         "save-steps",
         &[
             "frames = 1",
+            // A tree planted where the tree layer has room, then the big tree deleted.
+            "select = [63, 20]\ninsert = [20, 42]\nframes = 1",
             &format!(
-                "select = [63, 20]\ndelete = true\ninsert = [48, 50]\nsave = {:?}\nframes = 2\nquit = true",
+                "select = [63, 20]\ndelete = true\nsave = {:?}\nframes = 2\nquit = true",
                 saved.to_str().unwrap()
             ),
         ],
     );
+    assert!(
+        changed_pixels(&images[0], &images[1]) > 0,
+        "no tree planted"
+    );
     let rendered = interactive_render(Some(&saved), &dir.join("render.png"));
-    let differing = changed_pixels(&images[1], &rendered);
+    let differing = changed_pixels(&images[2], &rendered);
     assert_eq!(
         differing, 0,
         "the saved scene renders {differing} pixels differently"

@@ -672,27 +672,17 @@ pub fn build(spec: &EcosystemSpec, seed: u64) -> Result<SceneBuild, SceneError> 
     let place_start = Instant::now();
     let eye = spec.camera.eye;
     let half = spec.terrain.size / 2.0;
-    let layer_plants: Vec<Vec<Plant>> = spec
+    let layer_plants: Vec<(Vec<Plant>, f32)> = spec
         .layers
         .par_iter()
         .enumerate()
         .map(|(l, layer)| {
             let layer_seed = seed ^ sylva_engine::sampling::mix64(l as u64 + 1);
-            let region = layer.region.unwrap_or([-half, -half, half, half]);
-            let points = poisson_disk(
-                &PlacementRule {
-                    count: layer.count,
-                    region,
-                    min_spacing: layer.min_spacing,
-                    clustering: layer.clustering,
-                    cluster_size: 12.0,
-                },
-                layer_seed,
-            );
+            let (points, spacing) = poisson_disk(&layer_rule(layer, half), layer_seed);
             let weights: Vec<f32> = layer.species.iter().map(|s| s.weight.max(0.0)).collect();
             let total: f32 = weights.iter().sum();
             let mut rng = SceneRng::new(layer_seed, "plants");
-            points
+            let plants = points
                 .into_iter()
                 .map(|p| {
                     // Push plants out of the clearing rather than dropping them, so a
@@ -727,9 +717,12 @@ pub fn build(spec: &EcosystemSpec, seed: u64) -> Result<SceneBuild, SceneError> 
                         layer: l as u32,
                     })
                 })
-                .collect()
+                .collect::<Vec<Plant>>();
+            (plants, spacing)
         })
         .collect();
+    let (layer_plants, layer_spacing): (Vec<Vec<Plant>>, Vec<f32>) =
+        layer_plants.into_iter().unzip();
     let plants: Vec<Plant> = match &spec.plants {
         None => layer_plants.into_iter().flatten().collect(),
         Some(list) => list
@@ -773,6 +766,7 @@ pub fn build(spec: &EcosystemSpec, seed: u64) -> Result<SceneBuild, SceneError> 
             })
             .collect(),
         layers: spec.layers.iter().map(|l| l.name.clone()).collect(),
+        layer_spacing,
         terrain: Some(ids[0]),
         height_field: Some(terrain),
         shaders,
@@ -800,4 +794,15 @@ pub fn build(spec: &EcosystemSpec, seed: u64) -> Result<SceneBuild, SceneError> 
         generate_time: generate_time + place_time,
         blas_time,
     })
+}
+
+/// How a layer's plants are placed over a terrain of half-size `half`.
+fn layer_rule(layer: &LayerSpec, half: f32) -> PlacementRule {
+    PlacementRule {
+        count: layer.count,
+        region: layer.region.unwrap_or([-half, -half, half, half]),
+        min_spacing: layer.min_spacing,
+        clustering: layer.clustering,
+        cluster_size: 12.0,
+    }
 }

@@ -5,7 +5,7 @@
 //! pixel operations (`select_at`, `insert_at`, …) are what a viewer's clicks and keys do:
 //! they pick through the camera and keep the history and the selection in the world.
 
-use crate::{move_plant, plant_at};
+use crate::{LayerSpacing, move_plant, plant_at};
 use bevy_ecs::prelude::*;
 use sylva_engine::components::{Instance, Layer, Transform};
 use sylva_engine::geometry::{GeometryId, GeometryLibrary};
@@ -238,7 +238,10 @@ pub fn insert_at(world: &mut World, camera: Entity, (x, y): (u32, u32)) -> Optio
 }
 
 /// Plants one of the selected plant's species and layer (or of the first plant's) on
-/// the terrain at `(x, z)`, upright, unturned, at the template's size; returns it.
+/// the terrain at `(x, z)`, upright, unturned, at the template's size; returns it. The
+/// layer's spacing rule holds: nothing is planted closer than [`LayerSpacing`] to a
+/// plant of the same layer (`None`, and no edit), so repeated inserts along a path (the
+/// viewer's brush) space themselves.
 pub fn insert_at_ground(world: &mut World, (x, z): (f32, f32)) -> Option<Entity> {
     let selected = world.get_resource::<Selected>().and_then(|s| s.0);
     let template = selected
@@ -252,11 +255,33 @@ pub fn insert_at_ground(world: &mut World, (x, z): (f32, f32)) -> Option<Entity>
     let species = world.get::<Instance>(template)?.geometry;
     let layer = world.get::<Layer>(template).map(|l| l.0);
     let scale = world.get::<Transform>(template).map_or(1.0, |t| t.scale.y);
+    if let Some(layer) = layer
+        && crowds_its_layer(world, layer, glam::Vec2::new(x, z))
+    {
+        return None;
+    }
     let plant = with_history(world, |history, world| {
         history.insert(world, species, layer, (x, z), 0.0, scale)
     });
     world.insert_resource(Selected(Some(plant)));
     Some(plant)
+}
+
+/// True when a plant of `layer` stands closer to ground position `at` than the layer's
+/// spacing.
+fn crowds_its_layer(world: &mut World, layer: u32, at: glam::Vec2) -> bool {
+    let spacing = world
+        .get_resource::<LayerSpacing>()
+        .and_then(|s| s.0.get(layer as usize).copied())
+        .unwrap_or(0.0);
+    spacing > 0.0
+        && world
+            .query::<(&Transform, &Layer)>()
+            .iter(world)
+            .any(|(t, l)| {
+                l.0 == layer
+                    && glam::Vec2::new(t.translation.x, t.translation.z).distance(at) < spacing
+            })
 }
 
 /// Moves the selected plant to where pixel `(x, y)` meets the scene; false when none is
@@ -735,5 +760,39 @@ mod tests {
         // Outside every crown: nothing, and the selection is cleared.
         assert_eq!(select_at_ground(&mut world, (3.0, 4.0)), None);
         assert_eq!(world.resource::<Selected>().0, None);
+    }
+
+    #[test]
+    fn inserts_keep_the_layer_spacing_and_other_layers_do_not_count() {
+        let (mut world, plants) = meadow();
+        // Layers 0..3 each hold one plant, at x = 0, 3, 6, 9 (z = 1); layer 1 keeps 2 m.
+        world.insert_resource(LayerSpacing(vec![0.0, 2.0, 0.0, 0.0]));
+        select(&mut world, Some(plants[1]));
+        assert_eq!(
+            insert_at_ground(&mut world, (4.5, 1.0)),
+            None,
+            "1.5 m from its layer's plant"
+        );
+        assert_eq!(
+            world
+                .get_resource::<EditHistory>()
+                .map_or(0, EditHistory::undoable),
+            0,
+            "a refused insert is no edit"
+        );
+        // 2 m away is allowed, and the new plant then keeps the next one off.
+        let first = insert_at_ground(&mut world, (5.0, 1.0)).expect("2 m from its layer's plant");
+        assert_eq!(world.get::<Layer>(first), Some(&Layer(1)));
+        assert_eq!(
+            insert_at_ground(&mut world, (6.5, 1.0)),
+            None,
+            "1.5 m from the new one"
+        );
+        // Next to plant 2 (another layer), 0.5 m off, is fine for layer 1 ...
+        select(&mut world, Some(first));
+        assert!(insert_at_ground(&mut world, (7.0, 1.0)).is_some());
+        // ... and layer 0 has no rule.
+        select(&mut world, Some(plants[0]));
+        assert!(insert_at_ground(&mut world, (0.1, 1.0)).is_some());
     }
 }

@@ -1240,6 +1240,7 @@ impl GltfScene {
             library,
             species,
             layers: vec!["glTF nodes".into()],
+            layer_spacing: vec![0.0],
             terrain: None,
             height_field: None,
             shaders: self.shaders,

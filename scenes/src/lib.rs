@@ -108,6 +108,11 @@ pub struct Plant {
     pub layer: u32,
 }
 
+/// Per layer, the least distance between two of its plants
+/// ([`SceneBuild::layer_spacing`]), as a world resource for the editor.
+#[derive(Clone, Debug, Default, Resource)]
+pub struct LayerSpacing(pub Vec<f32>);
+
 /// The height field plants stand on, as a world resource for placing plants later.
 #[derive(Clone, Debug, Resource)]
 pub struct Terrain(pub HeightField);
@@ -123,6 +128,10 @@ pub struct SceneBuild {
     pub species: Vec<Species>,
     /// Names of the vegetation layers.
     pub layers: Vec<String>,
+    /// Per layer, the spacing its placement ended with, which every two of its plants
+    /// keep (dense layers relax the asked one; 0 for none): the editor keeps inserted
+    /// plants this far from the layer's.
+    pub layer_spacing: Vec<f32>,
     /// The terrain mesh, instanced once at the origin.
     pub terrain: Option<GeometryId>,
     /// The terrain's height field (for placing plants on it).
@@ -229,6 +238,7 @@ pub struct SpawnedScene {
 /// resources; shaders, plants, the terrain, lights and the camera become entities.
 pub fn spawn(world: &mut World, scene: SceneBuild) -> SpawnedScene {
     world.insert_resource(scene.library);
+    world.insert_resource(LayerSpacing(scene.layer_spacing));
     if let Some(field) = scene.height_field {
         world.insert_resource(Terrain(field));
     }

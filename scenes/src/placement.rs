@@ -20,21 +20,31 @@ pub struct PlacementRule {
     pub cluster_size: f32,
 }
 
+impl PlacementRule {
+    /// The distance the darts start from: `min_spacing`, or 0.6 × the mean spacing of
+    /// `count` points over the region.
+    pub fn spacing(&self) -> f32 {
+        let [x0, z0, x1, z1] = self.region;
+        let area = (x1 - x0).max(1e-3) * (z1 - z0).max(1e-3);
+        self.min_spacing
+            .unwrap_or_else(|| 0.6 * (area / self.count.max(1) as f32).sqrt())
+            .max(0.0)
+    }
+}
+
 /// Throws darts until `rule.count` points are placed. A dart closer than the spacing to
 /// a placed point is rejected; after a run of rejections the spacing shrinks by 5 %, so
-/// the count is always met (dense layers end up a little closer than asked).
-pub fn poisson_disk(rule: &PlacementRule, seed: u64) -> Vec<Vec2> {
+/// the count is always met (dense layers end up a little closer than asked). Returns the
+/// points and the spacing it ended with, which every two of them keep.
+pub fn poisson_disk(rule: &PlacementRule, seed: u64) -> (Vec<Vec2>, f32) {
     let [x0, z0, x1, z1] = rule.region;
     let (width, depth) = ((x1 - x0).max(1e-3), (z1 - z0).max(1e-3));
     let n = rule.count as usize;
+    let mut spacing = rule.spacing();
     if n == 0 {
-        return Vec::new();
+        return (Vec::new(), spacing);
     }
     let area = width * depth;
-    let mut spacing = rule
-        .min_spacing
-        .unwrap_or_else(|| 0.6 * (area / n as f32).sqrt())
-        .max(0.0);
     // Cells no smaller than the initial spacing keep the 3×3 neighbourhood sufficient
     // as the spacing only ever shrinks; cap the grid at about 4 cells per point.
     let cell = spacing.max((area / (4.0 * n as f32)).sqrt()).max(1e-3);
@@ -87,7 +97,7 @@ pub fn poisson_disk(rule: &PlacementRule, seed: u64) -> Vec<Vec2> {
         grid[cz * gw + cx].push(points.len() as u32);
         points.push(p);
     }
-    points
+    (points, spacing)
 }
 
 #[cfg(test)]
@@ -116,7 +126,7 @@ mod tests {
 
     #[test]
     fn exact_count_inside_the_region_with_the_spacing_kept() {
-        let points = poisson_disk(&rule(300, Some(1.0), 0.0), 1);
+        let (points, _) = poisson_disk(&rule(300, Some(1.0), 0.0), 1);
         assert_eq!(points.len(), 300);
         assert!(
             points
@@ -124,15 +134,19 @@ mod tests {
                 .all(|p| (-20.0..20.0).contains(&p.x) && (-10.0..10.0).contains(&p.y))
         );
         assert!(min_distance(&points) >= 1.0);
-        assert_eq!(points, poisson_disk(&rule(300, Some(1.0), 0.0), 1));
+        assert_eq!(points, poisson_disk(&rule(300, Some(1.0), 0.0), 1).0);
     }
 
     #[test]
     fn an_impossible_spacing_relaxes_instead_of_looping_forever() {
         // 2000 points at 2 m spacing cannot fit in 800 m²; the count is still met.
-        let points = poisson_disk(&rule(2000, Some(2.0), 0.0), 2);
+        let (points, spacing) = poisson_disk(&rule(2000, Some(2.0), 0.0), 2);
         assert_eq!(points.len(), 2000);
-        assert!(min_distance(&points) > 0.0);
+        assert!(spacing < 2.0, "relaxed to {spacing}");
+        assert!(
+            min_distance(&points) >= spacing,
+            "every pair keeps the spacing it ended with"
+        );
     }
 
     #[test]
@@ -147,8 +161,8 @@ mod tests {
             let mean = bins.iter().sum::<f32>() / 50.0;
             bins.iter().map(|b| (b - mean).powi(2)).sum::<f32>() / 50.0
         };
-        let uniform = variance(&poisson_disk(&rule(800, None, 0.0), 3));
-        let clustered = variance(&poisson_disk(&rule(800, None, 0.9), 3));
+        let uniform = variance(&poisson_disk(&rule(800, None, 0.0), 3).0);
+        let clustered = variance(&poisson_disk(&rule(800, None, 0.9), 3).0);
         assert!(clustered > 3.0 * uniform, "{clustered} vs {uniform}");
     }
 }

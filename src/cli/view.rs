@@ -201,6 +201,7 @@ pub(crate) fn run(args: ViewArgs) -> Result<()> {
         screenshots: 0,
         error: None,
         pose: start_pose,
+        brush: None,
         moving: false,
         recorder: args
             .record
@@ -354,6 +355,8 @@ struct App {
     error: Option<anyhow::Error>,
     /// The camera pose last sent to the renderer.
     pose: Transform,
+    /// I is held down (painting plants): where the cursor was at the last insert.
+    brush: Option<PhysicalPosition<f64>>,
     /// The camera moved at the last step (its coming to rest is recorded).
     moving: bool,
     /// `--record`: where the walkthrough goes, and what it holds so far.
@@ -421,6 +424,9 @@ impl FrameWriter {
             .map_err(|_| anyhow::anyhow!("the frame writer panicked"))?
     }
 }
+
+/// Pixels the cursor moves between two of the brush's inserts.
+const BRUSH_STEP: f64 = 8.0;
 
 /// Radians of turn per pixel of mouse drag.
 const LOOK_PER_PIXEL: f32 = 0.004;
@@ -796,6 +802,16 @@ impl App {
         }
     }
 
+    /// Plants one of the selected plant's species where the cursor points, on the map or
+    /// in the view (refused by the render thread where the layer's spacing forbids it).
+    fn insert_at_cursor(&mut self) {
+        if let Some(at) = self.cursor_on_map() {
+            self.edit(EditorAction::InsertAtGround(at.x, at.y));
+        } else if let Some((x, y)) = self.cursor_pixel() {
+            self.edit(EditorAction::Insert(x, y));
+        }
+    }
+
     /// Records the end of the walkthrough (a script's own quit step is recorded with it).
     fn record_quit(&mut self) {
         self.record(ScriptStep {
@@ -866,7 +882,7 @@ impl App {
             return;
         };
         window.set_title(&format!(
-            "sylva view: {}, {} frames, {:.0} ms/frame, {:.2} M rays/s, {:.1} m/s, {} (WASD/arrows move, Q/E down/up, drag to look, scroll speed, click select, I insert, M move, Del delete, Ctrl+Z/Y undo/redo, G wind, Tab map, H HUD, P screenshot, Esc quit)",
+            "sylva view: {}, {} frames, {:.0} ms/frame, {:.2} M rays/s, {:.1} m/s, {} (WASD/arrows move, Q/E down/up, drag to look, scroll speed, click select, I insert (hold and move to paint), M move, Del delete, Ctrl+Z/Y undo/redo, G wind, Tab map, H HUD, P screenshot, Esc quit)",
             self.label,
             shown.frames,
             shown.frame_time.as_secs_f64() * 1e3,
@@ -1064,12 +1080,10 @@ impl ApplicationHandler<FrameReady> for App {
                         self.edit(EditorAction::Delete);
                     }
                     (KeyCode::KeyI, ElementState::Pressed) if !event.repeat => {
-                        if let Some(at) = self.cursor_on_map() {
-                            self.edit(EditorAction::InsertAtGround(at.x, at.y));
-                        } else if let Some((x, y)) = self.cursor_pixel() {
-                            self.edit(EditorAction::Insert(x, y));
-                        }
+                        self.brush = self.cursor;
+                        self.insert_at_cursor();
                     }
+                    (KeyCode::KeyI, ElementState::Released) => self.brush = None,
                     (KeyCode::KeyM, ElementState::Pressed) if !event.repeat => {
                         if let Some((x, y)) = self.cursor_pixel() {
                             self.edit(EditorAction::Move(x, y));
@@ -1131,7 +1145,10 @@ impl ApplicationHandler<FrameReady> for App {
                     }
                 }
             }
-            WindowEvent::Focused(false) => self.held.clear(),
+            WindowEvent::Focused(false) => {
+                self.held.clear();
+                self.brush = None;
+            }
             WindowEvent::ModifiersChanged(modifiers) => self.modifiers = modifiers,
             WindowEvent::MouseInput {
                 state,
@@ -1188,6 +1205,14 @@ impl ApplicationHandler<FrameReady> for App {
                     ) * LOOK_PER_PIXEL;
                 }
                 self.cursor = Some(position);
+                // I held down paints: a plant wherever the cursor has moved on a few
+                // pixels, where the layer's spacing allows one.
+                if let Some(last) = self.brush
+                    && (position.x - last.x).abs() + (position.y - last.y).abs() >= BRUSH_STEP
+                {
+                    self.brush = Some(position);
+                    self.insert_at_cursor();
+                }
             }
             WindowEvent::MouseWheel { delta, .. } => {
                 self.scroll += match delta {
