@@ -372,3 +372,22 @@ fn a_recorded_walkthrough_replays_to_the_same_scene_and_every_shown_frame_is_sav
     assert!(restarts >= 3, "{restarts} restarts among the shown frames");
     std::fs::remove_dir_all(&dir).ok();
 }
+
+#[test]
+fn the_overview_key_jumps_above_the_ecosystem_and_back_to_the_same_view() {
+    let images = screenshots_of_steps(
+        "overview",
+        &[
+            "frames = 2",
+            "overview = true\nframes = 1",
+            "overview = false\nframes = 2\nquit = true",
+        ],
+    );
+    let jumped = changed_pixels(&images[0], &images[1]);
+    assert!(
+        jumped > 96 * 72 / 2,
+        "the overview changed only {jumped} pixels"
+    );
+    let back = changed_pixels(&images[0], &images[2]);
+    assert_eq!(back, 0, "back at the scene's camera {back} pixels differ");
+}

@@ -12,7 +12,7 @@ use std::time::Instant;
 use sylva::scenes::editor;
 use sylva::systems::live::{LiveCommand, LiveRender, ShownImage};
 use sylva::systems::walkthrough::{
-    FlyCamera, FlyInput, ScriptRecorder, ScriptStep, WalkthroughScript,
+    FlyCamera, FlyInput, ScriptRecorder, ScriptStep, WalkthroughScript, overview_pose,
 };
 use winit::application::ApplicationHandler;
 use winit::dpi::{PhysicalPosition, PhysicalSize};
@@ -132,6 +132,25 @@ pub(crate) fn run(args: ViewArgs) -> Result<()> {
         args.exposure,
     );
     let start_pose = scene.camera_transform;
+    let overview = {
+        use glam::Vec3Swizzles;
+        let (mut min, mut max, mut height) = (
+            glam::Vec2::splat(f32::MAX),
+            glam::Vec2::splat(f32::MIN),
+            0.0f64,
+        );
+        for plant in &scene.plants {
+            let t = plant.transform.translation;
+            (min, max) = (min.min(t.xz()), max.max(t.xz()));
+            height += f64::from(t.y);
+        }
+        if scene.plants.is_empty() {
+            (min, max) = (start_pose.translation.xz(), start_pose.translation.xz());
+        }
+        let ground = (height / scene.plants.len().max(1) as f64) as f32;
+        let aspect = width as f32 / args.height as f32;
+        overview_pose(min, max, ground, scene.camera.vertical_fov, aspect)
+    };
     let stats = scene.stats();
     // A pace for the scene's size: a twentieth of the plants' spread per second.
     let extent = scene.plants.iter().fold(1.0f32, |m, p| {
@@ -201,6 +220,8 @@ pub(crate) fn run(args: ViewArgs) -> Result<()> {
         screenshots: 0,
         error: None,
         pose: start_pose,
+        views: [start_pose, overview],
+        view: 0,
         brush: None,
         moving: false,
         recorder: args
@@ -355,6 +376,10 @@ struct App {
     error: Option<anyhow::Error>,
     /// The camera pose last sent to the renderer.
     pose: Transform,
+    /// The scene's camera and the overview, which V switches between.
+    views: [Transform; 2],
+    /// The one shown last.
+    view: usize,
     /// I is held down (painting plants): where the cursor was at the last insert.
     brush: Option<PhysicalPosition<f64>>,
     /// The camera moved at the last step (its coming to rest is recorded).
@@ -882,7 +907,7 @@ impl App {
             return;
         };
         window.set_title(&format!(
-            "sylva view: {}, {} frames, {:.0} ms/frame, {:.2} M rays/s, {:.1} m/s, {} (WASD/arrows move, Q/E down/up, drag to look, scroll speed, click select, I insert (hold and move to paint), M move, Del delete, Ctrl+Z/Y undo/redo, G wind, Tab map, H HUD, P screenshot, Esc quit)",
+            "sylva view: {}, {} frames, {:.0} ms/frame, {:.2} M rays/s, {:.1} m/s, {} (WASD/arrows move, Q/E down/up, drag to look, scroll speed, click select, I insert (hold and move to paint), M move, Del delete, Ctrl+Z/Y undo/redo, G wind, V overview/camera, Tab map, H HUD, P screenshot, Esc quit)",
             self.label,
             shown.frames,
             shown.frame_time.as_secs_f64() * 1e3,
@@ -964,7 +989,14 @@ impl App {
                     // A step that stays where the camera is sends nothing: a pose that
                     // differs in the last bit would restart the accumulation.
                     let command = if WalkthroughScript::moves(&step) {
-                        let pose = WalkthroughScript::pose(&step, &self.pose);
+                        let from = match step.overview {
+                            Some(overview) => {
+                                self.view = usize::from(overview);
+                                self.views[self.view]
+                            }
+                            None => self.pose,
+                        };
+                        let pose = WalkthroughScript::pose(&step, &from);
                         self.fly = FlyCamera::from_transform(&pose, self.fly.speed);
                         let Some(command) = self.send_pose(pose) else {
                             return self.fail(event_loop, anyhow::anyhow!("the renderer stopped"));
@@ -1118,6 +1150,15 @@ impl ApplicationHandler<FrameReady> for App {
                     (KeyCode::KeyG, ElementState::Pressed) if !event.repeat => {
                         self.wind = !self.wind;
                         self.edit(EditorAction::Wind(self.wind));
+                    }
+                    (KeyCode::KeyV, ElementState::Pressed) if !event.repeat => {
+                        self.view = (self.view + 1) % self.views.len();
+                        let pose = self.views[self.view];
+                        self.fly = FlyCamera::from_transform(&pose, self.fly.speed);
+                        if self.send_pose(pose).is_none() {
+                            return self.fail(event_loop, anyhow::anyhow!("the renderer stopped"));
+                        }
+                        self.record(ScriptStep::default());
                     }
                     (KeyCode::KeyH, ElementState::Pressed) if !event.repeat => {
                         self.hud_hidden = !self.hud_hidden;

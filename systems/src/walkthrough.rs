@@ -101,6 +101,24 @@ impl FlyCamera {
     }
 }
 
+/// A pose that looks down at 45° from the +Z side on the ground rectangle `min`..`max`
+/// (x, z) at height `ground`, far enough back that the rectangle fits a view of
+/// `vertical_fov` radians at `aspect` (width / height): the viewer's overview.
+pub fn overview_pose(
+    min: Vec2,
+    max: Vec2,
+    ground: f32,
+    vertical_fov: f32,
+    aspect: f32,
+) -> Transform {
+    let centre = Vec3::new(0.5 * (min.x + max.x), ground, 0.5 * (min.y + max.y));
+    let radius = (0.5 * (max - min).length()).max(1.0);
+    let half_fov = (0.5 * vertical_fov).min(((0.5 * vertical_fov).tan() * aspect).atan());
+    let distance = radius / half_fov.sin().max(1e-3);
+    let eye = centre + Vec3::new(0.0, 1.0, 1.0).normalize() * distance;
+    Transform::looking_at(eye, centre, Vec3::Y)
+}
+
 /// One stop of a scripted walkthrough: where to stand, how long to refine, what to save.
 #[derive(Clone, Debug, Default, PartialEq, serde::Deserialize, serde::Serialize)]
 #[serde(deny_unknown_fields)]
@@ -115,6 +133,10 @@ pub struct ScriptStep {
     /// The point the camera turns to.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub look_at: Option<[f32; 3]>,
+    /// First jump to the overview (`true`) or back to the scene's camera (`false`), as
+    /// the viewer's V key does; the keys above then apply from there.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub overview: Option<bool>,
     /// Then walk this many metres along the camera's heading (level, as the keys do).
     #[serde(skip_serializing_if = "Option::is_none")]
     pub advance: Option<f32>,
@@ -234,6 +256,7 @@ impl WalkthroughScript {
         step.position.is_some()
             || step.rotation.is_some()
             || step.look_at.is_some()
+            || step.overview.is_some()
             || step.advance.is_some()
     }
 
@@ -266,6 +289,7 @@ impl ScriptRecorder {
             position: moved.then_some(pose_bits.0),
             rotation: moved.then_some(pose_bits.1),
             look_at: None,
+            overview: None,
             advance: None,
             frames: None,
             ..step
@@ -477,5 +501,35 @@ mod tests {
         assert_eq!(pose.rotation.to_array(), moved.rotation.to_array());
         let skewed = WalkthroughScript::parse("[[step]]\nrotation = [0, 0, 0, 2]\n").unwrap_err();
         assert!(skewed.contains("unit quaternion"), "{skewed}");
+    }
+
+    #[test]
+    fn the_overview_sees_every_corner_of_the_ground() {
+        for (min, max, aspect) in [
+            (
+                Vec2::new(-100.0, -100.0),
+                Vec2::new(100.0, 100.0),
+                4.0 / 3.0,
+            ),
+            (Vec2::new(-20.0, 10.0), Vec2::new(20.0, 50.0), 0.5),
+            (Vec2::new(3.0, 3.0), Vec2::new(3.0, 3.0), 1.0),
+        ] {
+            let fov = 50f32.to_radians();
+            let pose = overview_pose(min, max, 2.0, fov, aspect);
+            let forward = pose.rotation * -Vec3::Z;
+            assert!(forward.y < -0.5, "looks down: {forward}");
+            let (right, up) = (pose.rotation * Vec3::X, pose.rotation * Vec3::Y);
+            for corner in [min, max, Vec2::new(min.x, max.y), Vec2::new(max.x, min.y)] {
+                let to = Vec3::new(corner.x, 2.0, corner.y) - pose.translation;
+                let depth = to.dot(forward);
+                assert!(depth > 0.0);
+                let tan_y = (0.5 * fov).tan();
+                assert!(to.dot(up).abs() / depth <= tan_y, "{corner} above or below");
+                assert!(
+                    to.dot(right).abs() / depth <= tan_y * aspect,
+                    "{corner} aside"
+                );
+            }
+        }
     }
 }
