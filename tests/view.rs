@@ -391,3 +391,50 @@ fn the_overview_key_jumps_above_the_ecosystem_and_back_to_the_same_view() {
     let back = changed_pixels(&images[0], &images[2]);
     assert_eq!(back, 0, "back at the scene's camera {back} pixels differ");
 }
+
+#[test]
+fn a_scene_that_fails_to_load_leaves_the_shown_one_and_a_good_one_replaces_it() {
+    let dir = temp_dir("open");
+    let (good, broken) = (dir.join("good.toml"), dir.join("broken.toml"));
+    std::fs::write(&broken, "[scene]\nname = \"broken\"\nlayers = 3\n").unwrap();
+    let shot = |i: usize| dir.join(format!("open{i}.png"));
+    let script = dir.join("script.toml");
+    std::fs::write(
+        &script,
+        format!(
+            "[[step]]\nsave = {good:?}\nframes = 2\nscreenshot = {:?}\n\n\
+             [[step]]\nopen = {broken:?}\nframes = 1\nscreenshot = {:?}\n\n\
+             [[step]]\nopen = {good:?}\nframes = 2\nscreenshot = {:?}\nquit = true\n",
+            shot(0),
+            shot(1),
+            shot(2),
+        ),
+    )
+    .unwrap();
+    let run = view_on_xvfb(&[
+        "--width",
+        "96",
+        "--height",
+        "72",
+        "--script",
+        script.to_str().unwrap(),
+    ]);
+    let stderr = String::from_utf8_lossy(&run.stderr);
+    assert!(run.status.success(), "{stderr}");
+    assert!(
+        stderr.contains("broken.toml") && stderr.contains("kept meadow"),
+        "the failed load is not reported with its file: {stderr}"
+    );
+    let [before, kept, reopened] = [0, 1, 2].map(|i| rgb(&shot(i)).0);
+    assert!(
+        kept.chunks_exact(3).any(|p| p != &kept[..3]),
+        "the window went blank after the failed load"
+    );
+    assert!(
+        changed_pixels(&before, &kept) < 96 * 72 / 2,
+        "another scene is shown"
+    );
+    // The saved meadow, loaded in its place at the same camera, is the same image.
+    assert_eq!(changed_pixels(&before, &reopened), 0);
+    std::fs::remove_dir_all(&dir).ok();
+}

@@ -125,7 +125,7 @@ impl DiscontinuityFilter {
         // A centred window: offsets -(n/2) .. n - 1 - n/2 cover every pixel class once.
         let (lo, hi) = (-(n / 2), n - 1 - n / 2);
         let mut out = radiance.to_vec();
-        if n <= 1 {
+        if n <= 1 || w == 0 || h == 0 {
             return out;
         }
         // Per pixel once, not once per window that holds it (N² times): its light, and

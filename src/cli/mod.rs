@@ -21,7 +21,7 @@ use sylva::prelude::*;
 use sylva::scenes::SceneBuild;
 use tracing_subscriber::prelude::*;
 
-#[derive(Args, Debug)]
+#[derive(Args, Clone, Debug)]
 pub(crate) struct SceneArgs {
     /// Built-in scene (meadow, forest, paper) or a TOML scene file (*.toml).
     #[arg(long, default_value = "meadow")]
@@ -45,6 +45,27 @@ pub(crate) struct SceneArgs {
     /// opaque with the same reflected light, and saves the shadow rays it costs.
     #[arg(long, value_enum, value_name = "on|off", default_value = "on")]
     translucency: Switch,
+}
+
+impl SceneArgs {
+    /// These settings with the scene at `path` instead: a glTF file (`.gltf`, `.glb`),
+    /// else a scene file or preset name.
+    fn opening(&self, path: &Path) -> Self {
+        let gltf = path
+            .extension()
+            .and_then(|e| e.to_str())
+            .is_some_and(|e| e.eq_ignore_ascii_case("gltf") || e.eq_ignore_ascii_case("glb"));
+        Self {
+            scene: if gltf {
+                self.scene.clone()
+            } else {
+                path.to_string_lossy().into_owned()
+            },
+            gltf: gltf.then(|| path.to_owned()),
+            camera: None,
+            ..self.clone()
+        }
+    }
 }
 
 /// `on` or `off`.

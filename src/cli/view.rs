@@ -121,89 +121,37 @@ pub(crate) fn run(args: ViewArgs) -> Result<()> {
     // business.
     let _trace_guard = init_tracing_filtered(None, "warn,winit=error");
 
-    let mut world = World::new();
-    let (mut scene, aspect, environment) =
-        build_lit(&mut world, &args.scene, args.env.as_deref(), args.lights)?;
-    let width = size_camera(
-        &mut scene,
-        aspect,
-        (args.width, args.height),
-        8192,
-        args.exposure,
-    );
-    let start_pose = scene.camera_transform;
-    let overview = {
-        use glam::Vec3Swizzles;
-        let (mut min, mut max, mut height) = (
-            glam::Vec2::splat(f32::MAX),
-            glam::Vec2::splat(f32::MIN),
-            0.0f64,
-        );
-        for plant in &scene.plants {
-            let t = plant.transform.translation;
-            (min, max) = (min.min(t.xz()), max.max(t.xz()));
-            height += f64::from(t.y);
-        }
-        if scene.plants.is_empty() {
-            (min, max) = (start_pose.translation.xz(), start_pose.translation.xz());
-        }
-        let ground = (height / scene.plants.len().max(1) as f64) as f32;
-        let aspect = width as f32 / args.height as f32;
-        overview_pose(min, max, ground, scene.camera.vertical_fov, aspect)
-    };
-    let stats = scene.stats();
-    // A pace for the scene's size: a twentieth of the plants' spread per second.
-    let extent = scene.plants.iter().fold(1.0f32, |m, p| {
-        m.max(p.transform.translation.x.abs())
-            .max(p.transform.translation.z.abs())
-    });
-    let spawned = spawn(&mut world, scene);
-    if let Some(environment) = environment {
-        world.spawn(environment);
-    }
-    Quality::interactive().apply(&mut world, spawned.camera);
-
     let proxy = event_loop.create_proxy();
-    let live = LiveRender::start(world, spawned.camera, args.max_frames, move || {
-        let _ = proxy.send_event(FrameReady);
-    })?;
+    let settings = Arc::new(ViewSettings {
+        env: args.env.clone(),
+        lights: args.lights,
+        exposure: args.exposure,
+        max_frames: args.max_frames,
+        save: args.save.clone(),
+        wake: proxy,
+    });
+    let loaded = load_scene(&settings, &args.scene, (args.width, args.height))?;
     let font = ab_glyph::FontRef::try_from_slice(dejavu::sans::regular())
         .map_err(|e| anyhow::anyhow!("the HUD font does not load: {e}"))?;
-    let save = Saving {
-        source: match (&args.scene.gltf, args.scene.scene.as_str()) {
-            (Some(_), _) => None,
-            (None, name) if name.ends_with(".toml") => {
-                Some(editor::SceneSource::File(PathBuf::from(name)))
-            }
-            (None, name) => Some(editor::SceneSource::Preset(name.to_string())),
-        },
-        seed: args.scene.seed,
-        path: args.save.clone().unwrap_or_else(|| {
-            let stem = Path::new(&args.scene.scene)
-                .file_stem()
-                .map_or("scene".into(), |s| s.to_string_lossy().into_owned());
-            PathBuf::from(format!("{stem}-edited.toml"))
-        }),
-    };
     let mut app = App {
-        live,
-        saving: Arc::new(save),
+        live: loaded.live,
+        saving: Arc::new(loaded.saving),
         hud: Some(Hud {
             font,
-            triangles: stats.instanced_triangles,
+            triangles: loaded.triangles,
         }),
         hud_hidden: false,
         wind: false,
         map_shown: args.map,
-        camera: spawned.camera,
+        camera: loaded.camera,
         modifiers: Modifiers::default(),
         press: None,
-        label: scene_label(&args.scene),
-        size: (width, args.height),
+        label: loaded.label,
+        size: (loaded.width, args.height),
         window: None,
         surface: None,
         shown: None,
-        fly: FlyCamera::from_transform(&start_pose, (extent * 0.05).clamp(1.0, 200.0)),
+        fly: FlyCamera::from_transform(&loaded.start_pose, loaded.speed),
         held: HashSet::new(),
         look: glam::Vec2::ZERO,
         scroll: 0.0,
@@ -219,8 +167,11 @@ pub(crate) fn run(args: ViewArgs) -> Result<()> {
         }),
         screenshots: 0,
         error: None,
-        pose: start_pose,
-        views: [start_pose, overview],
+        pose: loaded.start_pose,
+        views: [loaded.start_pose, loaded.overview],
+        scene: args.scene.clone(),
+        settings,
+        status: None,
         view: 0,
         brush: None,
         moving: false,
@@ -304,6 +255,110 @@ fn walkthrough_summary(
     )
 }
 
+/// What every scene the window loads is set up with.
+struct ViewSettings {
+    env: Option<PathBuf>,
+    lights: u32,
+    exposure: f32,
+    max_frames: u32,
+    save: Option<PathBuf>,
+    /// Wakes the event loop when the render thread has a frame.
+    wake: winit::event_loop::EventLoopProxy<FrameReady>,
+}
+
+/// A scene loaded into a world with its render thread running.
+struct LoadedScene {
+    live: LiveRender,
+    camera: Entity,
+    start_pose: Transform,
+    overview: Transform,
+    triangles: u64,
+    width: u32,
+    /// A walking pace for the scene's size.
+    speed: f32,
+    saving: Saving,
+    label: String,
+}
+
+/// Builds `scene` lit as `settings` say, sized `(width, height)`, and starts its render
+/// thread.
+fn load_scene(
+    settings: &ViewSettings,
+    scene_args: &SceneArgs,
+    (width, height): (Option<u32>, u32),
+) -> Result<LoadedScene> {
+    let mut world = World::new();
+    let (mut scene, aspect, environment) = build_lit(
+        &mut world,
+        scene_args,
+        settings.env.as_deref(),
+        settings.lights,
+    )?;
+    let width = size_camera(&mut scene, aspect, (width, height), 8192, settings.exposure);
+    let start_pose = scene.camera_transform;
+    let overview = {
+        use glam::Vec3Swizzles;
+        let (mut min, mut max, mut ground) = (
+            glam::Vec2::splat(f32::MAX),
+            glam::Vec2::splat(f32::MIN),
+            0.0f64,
+        );
+        for plant in &scene.plants {
+            let t = plant.transform.translation;
+            (min, max) = (min.min(t.xz()), max.max(t.xz()));
+            ground += f64::from(t.y);
+        }
+        if scene.plants.is_empty() {
+            (min, max) = (start_pose.translation.xz(), start_pose.translation.xz());
+        }
+        let ground = (ground / scene.plants.len().max(1) as f64) as f32;
+        let aspect = width as f32 / height as f32;
+        overview_pose(min, max, ground, scene.camera.vertical_fov, aspect)
+    };
+    let triangles = scene.stats().instanced_triangles;
+    // A pace for the scene's size: a twentieth of the plants' spread per second.
+    let extent = scene.plants.iter().fold(1.0f32, |m, p| {
+        m.max(p.transform.translation.x.abs())
+            .max(p.transform.translation.z.abs())
+    });
+    let spawned = spawn(&mut world, scene);
+    if let Some(environment) = environment {
+        world.spawn(environment);
+    }
+    Quality::interactive().apply(&mut world, spawned.camera);
+    let wake = settings.wake.clone();
+    let live = LiveRender::start(world, spawned.camera, settings.max_frames, move || {
+        let _ = wake.send_event(FrameReady);
+    })?;
+    let saving = Saving {
+        source: match (&scene_args.gltf, scene_args.scene.as_str()) {
+            (Some(_), _) => None,
+            (None, name) if name.ends_with(".toml") => {
+                Some(editor::SceneSource::File(PathBuf::from(name)))
+            }
+            (None, name) => Some(editor::SceneSource::Preset(name.to_string())),
+        },
+        seed: scene_args.seed,
+        path: settings.save.clone().unwrap_or_else(|| {
+            let stem = Path::new(&scene_args.scene)
+                .file_stem()
+                .map_or("scene".into(), |s| s.to_string_lossy().into_owned());
+            PathBuf::from(format!("{stem}-edited.toml"))
+        }),
+    };
+    Ok(LoadedScene {
+        live,
+        camera: spawned.camera,
+        start_pose,
+        overview,
+        triangles,
+        width,
+        speed: (extent * 0.05).clamp(1.0, 200.0),
+        saving,
+        label: scene_label(scene_args),
+    })
+}
+
 /// A script in progress: the next step to start, and the step waiting for its frames.
 struct ScriptRun {
     steps: Vec<sylva::systems::walkthrough::ScriptStep>,
@@ -376,6 +431,11 @@ struct App {
     error: Option<anyhow::Error>,
     /// The camera pose last sent to the renderer.
     pose: Transform,
+    /// The scene shown (F5 loads it again; a script's `open` another).
+    scene: SceneArgs,
+    settings: Arc<ViewSettings>,
+    /// The last load's failure, shown on the HUD and in the title until the next load.
+    status: Option<String>,
     /// The scene's camera and the overview, which V switches between.
     views: [Transform; 2],
     /// The one shown last.
@@ -827,6 +887,40 @@ impl App {
         }
     }
 
+    /// Loads `scene` in place of the one shown, keeping the camera where it is; a scene
+    /// that fails to load leaves the shown one running and its error on the HUD.
+    /// Returns the sequence number a step waits for.
+    fn switch_scene(&mut self, scene: SceneArgs) -> u64 {
+        let loaded = match load_scene(&self.settings, &scene, (Some(self.size.0), self.size.1)) {
+            Ok(loaded) => loaded,
+            Err(e) => {
+                let message = format!("{}: {e:#} (kept {})", scene_label(&scene), self.label);
+                eprintln!("error: {message}");
+                self.status = Some(message);
+                self.update_title();
+                return self.live.last_sent();
+            }
+        };
+        self.live = loaded.live;
+        self.camera = loaded.camera;
+        self.views = [loaded.start_pose, loaded.overview];
+        self.saving = Arc::new(loaded.saving);
+        self.label = loaded.label;
+        if let Some(hud) = &mut self.hud {
+            hud.triangles = loaded.triangles;
+        }
+        self.scene = scene;
+        self.status = None;
+        self.wind = false;
+        // The image shown came from the last render thread: the next frames must come
+        // from this one before a script step counts them.
+        if let Some(shown) = &mut self.shown {
+            (shown.applied, shown.frames) = (0, 0);
+        }
+        eprintln!("loaded {}", self.label);
+        self.send_pose(self.pose).unwrap_or(0)
+    }
+
     /// Plants one of the selected plant's species where the cursor points, on the map or
     /// in the view (refused by the render thread where the layer's spacing forbids it).
     fn insert_at_cursor(&mut self) {
@@ -906,8 +1000,12 @@ impl App {
         let (Some(window), Some(shown)) = (&self.window, &self.shown) else {
             return;
         };
+        if let Some(status) = &self.status {
+            window.set_title(&format!("sylva view: load failed: {status}"));
+            return;
+        }
         window.set_title(&format!(
-            "sylva view: {}, {} frames, {:.0} ms/frame, {:.2} M rays/s, {:.1} m/s, {} (WASD/arrows move, Q/E down/up, drag to look, scroll speed, click select, I insert (hold and move to paint), M move, Del delete, Ctrl+Z/Y undo/redo, G wind, V overview/camera, Tab map, H HUD, P screenshot, Esc quit)",
+            "sylva view: {}, {} frames, {:.0} ms/frame, {:.2} M rays/s, {:.1} m/s, {} (WASD/arrows move, Q/E down/up, drag to look, scroll speed, click select, I insert (hold and move to paint), M move, Del delete, Ctrl+Z/Y undo/redo, G wind, V overview/camera, F5 reload, Tab map, H HUD, P screenshot, Esc quit)",
             self.label,
             shown.frames,
             shown.frame_time.as_secs_f64() * 1e3,
@@ -986,6 +1084,14 @@ impl App {
                     };
                     let index = script.next;
                     script.next += 1;
+                    let opened = match (&step.open, step.reload) {
+                        (Some(path), _) => {
+                            let scene = self.scene.opening(path);
+                            Some(self.switch_scene(scene))
+                        }
+                        (None, true) => Some(self.switch_scene(self.scene.clone())),
+                        (None, false) => None,
+                    };
                     // A step that stays where the camera is sends nothing: a pose that
                     // differs in the last bit would restart the accumulation.
                     let command = if WalkthroughScript::moves(&step) {
@@ -1003,7 +1109,7 @@ impl App {
                         };
                         command
                     } else {
-                        self.live.last_sent()
+                        opened.unwrap_or_else(|| self.live.last_sent())
                     };
                     self.record(step.clone());
                     let actions = [
@@ -1072,6 +1178,12 @@ impl ApplicationHandler<FrameReady> for App {
     }
 
     fn user_event(&mut self, event_loop: &ActiveEventLoop, _: FrameReady) {
+        if let Some(failure) = self.live.failure() {
+            return self.fail(
+                event_loop,
+                anyhow::anyhow!("the render thread failed: {failure}"),
+            );
+        }
         if let Some(image) = self.live.take_latest() {
             if let Some(writer) = &self.frames_out
                 && !writer.push(&image)
@@ -1150,6 +1262,13 @@ impl ApplicationHandler<FrameReady> for App {
                     (KeyCode::KeyG, ElementState::Pressed) if !event.repeat => {
                         self.wind = !self.wind;
                         self.edit(EditorAction::Wind(self.wind));
+                    }
+                    (KeyCode::F5, ElementState::Pressed) if !event.repeat => {
+                        self.switch_scene(self.scene.clone());
+                        self.record(ScriptStep {
+                            reload: true,
+                            ..ScriptStep::default()
+                        });
                     }
                     (KeyCode::KeyV, ElementState::Pressed) if !event.repeat => {
                         self.view = (self.view + 1) % self.views.len();
@@ -1328,7 +1447,10 @@ impl App {
                 map.draw(&mut buffer, size.width as usize, &shown.map, shown.selected);
             }
             if let Some(hud) = self.hud.as_ref().filter(|_| !self.hud_hidden) {
-                let lines = hud.lines(shown, self.fly.speed);
+                let mut lines = hud.lines(shown, self.fly.speed);
+                if let Some(status) = &self.status {
+                    lines.push(format!("load failed: {status}"));
+                }
                 hud.draw(
                     &mut buffer,
                     size.width as usize,

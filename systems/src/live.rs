@@ -116,7 +116,9 @@ pub struct LiveRender {
     frame_log: Arc<Mutex<FrameLog>>,
     sent: u64,
     latest: Arc<Mutex<Option<ShownImage>>>,
-    thread: Option<JoinHandle<World>>,
+    /// Why the render thread ended early: its panic's message.
+    failure: Arc<Mutex<Option<String>>>,
+    thread: Option<JoinHandle<Option<World>>>,
 }
 
 impl LiveRender {
@@ -138,17 +140,35 @@ impl LiveRender {
         world.insert_resource(FrameCancel(Some(cancel.clone())));
         let flag = cancel.clone();
         let published = latest.clone();
+        let failure = Arc::new(Mutex::new(None));
+        let failed = failure.clone();
         let thread = std::thread::Builder::new()
             .name("sylva-live".into())
             .spawn(move || {
-                run(
-                    world,
-                    camera,
-                    max_frames.max(1),
-                    (inbox, &flag),
-                    (&published, &log),
-                    frame_ready,
-                )
+                let rendered = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| {
+                    run(
+                        world,
+                        camera,
+                        max_frames.max(1),
+                        (inbox, &flag),
+                        (&published, &log),
+                        &frame_ready,
+                    )
+                }));
+                match rendered {
+                    Ok(world) => Some(world),
+                    Err(panic) => {
+                        let message = panic
+                            .downcast_ref::<&str>()
+                            .map(|s| s.to_string())
+                            .or_else(|| panic.downcast_ref::<String>().cloned())
+                            .unwrap_or_else(|| "a panic without a message".into());
+                        *failed.lock().unwrap_or_else(PoisonError::into_inner) = Some(message);
+                        // Wake the window: no frame will come, and it must not wait for one.
+                        frame_ready();
+                        None
+                    }
+                }
             })?;
         Ok(Self {
             commands,
@@ -156,6 +176,7 @@ impl LiveRender {
             frame_log,
             sent: 0,
             latest,
+            failure,
             thread: Some(thread),
         })
     }
@@ -184,6 +205,15 @@ impl LiveRender {
             .clone()
     }
 
+    /// The message of the panic that ended the render thread, if it ended so (the window
+    /// is woken when it does).
+    pub fn failure(&self) -> Option<String> {
+        self.failure
+            .lock()
+            .unwrap_or_else(PoisonError::into_inner)
+            .clone()
+    }
+
     /// The newest frame not yet taken, if any.
     pub fn take_latest(&self) -> Option<ShownImage> {
         self.latest
@@ -197,7 +227,7 @@ impl LiveRender {
     pub fn stop(mut self) -> Option<World> {
         let _ = self.commands.send((u64::MAX, LiveCommand::Quit));
         self.cancel.store(true, Ordering::SeqCst);
-        self.thread.take().and_then(|t| t.join().ok())
+        self.thread.take().and_then(|t| t.join().ok().flatten())
     }
 }
 

@@ -460,8 +460,10 @@ pub fn filter_display(
 ) {
     let _span = tracing::info_span!("filter_display").entered();
     for (entity, film, frame, filter) in &cameras {
+        // An empty film (its first frame given up) has nothing to filter.
         if frame.width != film.width()
             || frame.height != film.height()
+            || film.frames() == 0
             || filter.strength(film.frames()) == 0.0
         {
             // Nothing to show but the film itself.

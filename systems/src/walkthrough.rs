@@ -123,6 +123,13 @@ pub fn overview_pose(
 #[derive(Clone, Debug, Default, PartialEq, serde::Deserialize, serde::Serialize)]
 #[serde(deny_unknown_fields)]
 pub struct ScriptStep {
+    /// Load this scene (a scene file, preset name or glTF file) in place of the shown
+    /// one, keeping the camera where it is; one that fails to load leaves the shown one.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub open: Option<std::path::PathBuf>,
+    /// Load the shown scene again (after its file changed), as F5 does.
+    #[serde(default, skip_serializing_if = "std::ops::Not::not")]
+    pub reload: bool,
     /// Where the camera moves to (it keeps its orientation without `look_at`).
     #[serde(skip_serializing_if = "Option::is_none")]
     pub position: Option<[f32; 3]>,

@@ -675,6 +675,55 @@ fn a_cancelled_frame_leaves_the_film_and_the_next_one_restarts_it_after_a_move()
 }
 
 #[test]
+fn a_render_thread_that_panics_wakes_the_window_and_says_why() {
+    use std::sync::mpsc;
+    use std::time::Duration;
+    use sylva_systems::live::{LiveCommand, LiveRender};
+    let w = test_world(1);
+    let (ready, wakes) = mpsc::channel();
+    let mut live = LiveRender::start(w.world, w.camera, 2, move || {
+        let _ = ready.send(());
+    })
+    .unwrap();
+    live.send(LiveCommand::Edit(Arc::new(|_: &mut World| {
+        panic!("an edit went wrong")
+    })));
+    let deadline = std::time::Instant::now() + Duration::from_secs(30);
+    while live.failure().is_none() {
+        assert!(std::time::Instant::now() < deadline, "no failure reported");
+        wakes
+            .recv_timeout(Duration::from_secs(30))
+            .expect("the window is woken");
+    }
+    assert_eq!(live.failure().as_deref(), Some("an edit went wrong"));
+    assert!(
+        live.stop().is_none(),
+        "a panicked thread hands back no world"
+    );
+}
+
+#[test]
+fn a_first_frame_cancelled_before_the_film_exists_leaves_nothing_to_filter() {
+    // A viewer's command can arrive during a new world's first frame (a scene opened
+    // with the camera kept where it was): the frame is given up while the film is still
+    // empty, and the display filter must not run over an empty image.
+    use std::sync::atomic::{AtomicBool, Ordering};
+    let mut w = test_world(2);
+    Quality::interactive().apply(&mut w.world, w.camera);
+    let flag = Arc::new(AtomicBool::new(true));
+    w.world.insert_resource(FrameCancel(Some(flag.clone())));
+    w.run();
+    assert_eq!(w.world.resource::<RenderStats>().cancelled, 1);
+    flag.store(false, Ordering::SeqCst);
+    w.run();
+    assert_eq!(w.film().frames(), 1);
+    let mut fresh = test_world(2);
+    Quality::interactive().apply(&mut fresh.world, fresh.camera);
+    fresh.run();
+    assert_eq!(pixels(&w), pixels(&fresh));
+}
+
+#[test]
 fn picking_names_the_entity_whose_surface_the_pixel_shows() {
     use sylva_systems::picking::pick;
     let mut w = test_world(1);
