@@ -541,8 +541,9 @@ impl Hud {
                 shown.rays_per_second / 1e6
             ),
             format!(
-                "render {:.0} ms  top level {:.1} ms (refit {:.1})  tone map {:.1} ms",
+                "render {:.0} ms  filter {:.1} ms  top level {:.1} ms (refit {:.1})  tone map {:.1} ms",
                 ms(shown.frame_time),
+                ms(shown.filter),
                 ms(shown.top_level.0),
                 ms(shown.top_level.1),
                 ms(shown.tone_map)

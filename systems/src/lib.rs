@@ -208,6 +208,8 @@ pub struct RenderStats {
     pub total_render: Duration,
     /// Frames given up because [`FrameCancel`] was set (not counted in `frames`).
     pub cancelled: u64,
+    /// Wall time of the latest `filter_display` run that filtered something.
+    pub last_filter: Duration,
 }
 
 /// Set from another thread to give up the frame in progress at its next tile: the

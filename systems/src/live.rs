@@ -45,6 +45,9 @@ pub struct ShownImage {
     pub instances: usize,
     /// Time of the latest top-level rebuild and of the latest refit.
     pub top_level: (Duration, Duration),
+    /// Time of the latest display filter (the interactive quality's discontinuity
+    /// filter).
+    pub filter: Duration,
     /// Time the render thread spent tone-mapping this frame for the window.
     pub tone_map: Duration,
     /// The plants as the editor's map draws them, as of this frame's top level (shared
@@ -328,6 +331,7 @@ fn run(
         image.map = map.0.clone();
         let stats = world.resource::<RenderStats>();
         image.frame_time = stats.last_render;
+        image.filter = stats.last_filter;
         log.lock()
             .unwrap_or_else(PoisonError::into_inner)
             .frame_times

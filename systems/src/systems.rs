@@ -457,8 +457,11 @@ pub fn filter_display(
     mut commands: Commands,
     pool: Res<RenderPool>,
     cameras: Query<(Entity, &Film, &FrameBuffer, &DiscontinuityFilter), Changed<Film>>,
+    mut stats: ResMut<RenderStats>,
 ) {
     let _span = tracing::info_span!("filter_display").entered();
+    let start = Instant::now();
+    let mut filtered = false;
     for (entity, film, frame, filter) in &cameras {
         // An empty film (its first frame given up) has nothing to filter.
         if frame.width != film.width()
@@ -488,6 +491,10 @@ pub fn filter_display(
             pixels,
             frames: film.frames(),
         });
+        filtered = true;
+    }
+    if filtered {
+        stats.last_filter = start.elapsed();
     }
 }
 

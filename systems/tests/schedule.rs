@@ -717,6 +717,10 @@ fn a_first_frame_cancelled_before_the_film_exists_leaves_nothing_to_filter() {
     flag.store(false, Ordering::SeqCst);
     w.run();
     assert_eq!(w.film().frames(), 1);
+    assert!(
+        w.world.resource::<RenderStats>().last_filter > std::time::Duration::ZERO,
+        "the display filter's time is reported"
+    );
     let mut fresh = test_world(2);
     Quality::interactive().apply(&mut fresh.world, fresh.camera);
     fresh.run();
