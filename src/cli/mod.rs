@@ -50,6 +50,7 @@ pub(crate) struct SceneArgs {
 impl SceneArgs {
     /// These settings with the scene at `path` instead: a glTF file (`.gltf`, `.glb`),
     /// else a scene file or preset name.
+    #[cfg(feature = "view")]
     fn opening(&self, path: &Path) -> Self {
         let gltf = path
             .extension()
