@@ -19,6 +19,7 @@ use cli::render::RenderArgs;
 ///   sylva render --scene forest --out forest.png
 ///   sylva render --scene my_ecosystem.toml --out mine.png
 ///   sylva render --gltf model.glb --camera 0 --out model.png
+///   sylva animate --scene meadow --seconds 2 --fps 30 --out frames/frame_%04d.png
 ///   sylva info --scene paper
 ///   sylva view --scene forest
 #[derive(Parser, Debug)]
@@ -32,6 +33,9 @@ struct Cli {
 enum Command {
     /// Render a scene to an image (.png tone-mapped sRGB, or .exr linear radiance).
     Render(Box<RenderArgs>),
+    /// Render an image sequence of the scene with its plants swaying in the wind (one
+    /// image per 1/fps seconds, frame_%04d.png or .exr), resumable with --resume.
+    Animate(Box<cli::animate::AnimateArgs>),
     /// Print a scene's statistics: species, triangles, instances, memory, build times.
     Info(SceneArgs),
     /// Measure error against wall time: render a converged reference (cached in the
@@ -53,6 +57,7 @@ fn main() {
     let cli = Cli::parse();
     let result = match cli.command {
         Command::Render(args) => cli::render::run(*args),
+        Command::Animate(args) => cli::animate::run(*args),
         Command::Info(args) => cli::info::run(args),
         Command::Compare(args) => cli::compare::run(args),
         Command::Converge(args) => cli::converge::run(*args),

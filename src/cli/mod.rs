@@ -1,6 +1,7 @@
 //! What the subcommands share: the scene arguments and how a scene is built and lit,
 //! tracing, output-path checks, durations, Ctrl-C, number formatting.
 
+pub mod animate;
 pub mod compare;
 pub mod converge;
 pub mod info;

@@ -24,6 +24,7 @@
 //! bevy's task pool only runs the systems themselves, whose threads block while the pool
 //! works, so the cores are not oversubscribed.
 
+pub mod animation;
 pub mod converge;
 pub mod live;
 pub mod picking;

@@ -797,3 +797,65 @@ fn the_map_lists_every_plant_with_its_crown_and_not_the_ground() {
         assert!((entry.radius - 1.0).abs() < 1e-3, "{}", entry.radius);
     }
 }
+
+/// Images `from..to` of a swaying test world's sequence at 10 fps, 2 frames each,
+/// rendered after skipping the images before `from`.
+fn sequence_images(threads: usize, from: u32, to: u32) -> Vec<Vec<[f32; 3]>> {
+    use sylva_engine::sway::{RestPose, Sway, Wind};
+    use sylva_systems::animation::Sequence;
+    let mut w = test_world(threads);
+    for &plant in &w.plants {
+        let rest = *w.world.get::<Transform>(plant).unwrap();
+        w.world
+            .entity_mut(plant)
+            .insert((Sway::new(40.0, 1.5, 2.0, 0.05).unwrap(), RestPose(rest)));
+    }
+    w.world.insert_resource(Wind::default());
+    let sequence = Sequence {
+        fps: 10.0,
+        frames_per_image: 2,
+        seed: 7,
+    };
+    sequence.skip(&mut w.world, 0, from.saturating_sub(1));
+    let camera = w.camera;
+    (from..to)
+        .map(|index| {
+            let stopped = sequence.render_image(
+                &mut w.world,
+                &mut w.schedule,
+                camera,
+                index,
+                &StopAt::default(),
+                |_, _| Flow::Continue,
+            );
+            assert_eq!(stopped, Stopped::Frames);
+            assert_eq!(w.film().frames(), 2);
+            pixels(&w)
+        })
+        .collect()
+}
+
+#[test]
+fn a_sequence_resumed_at_any_image_or_on_any_threads_gives_the_same_images() {
+    let whole = sequence_images(1, 0, 4);
+    for (i, pair) in whole.windows(2).enumerate() {
+        assert_ne!(pair[0], pair[1], "images {i} and {} are the same", i + 1);
+    }
+    assert_eq!(sequence_images(2, 0, 4), whole, "on 2 threads");
+    for from in [1, 3] {
+        assert_eq!(
+            sequence_images(2, from, 4),
+            whole[from as usize..],
+            "resumed at image {from}"
+        );
+    }
+    assert_eq!(
+        sylva_systems::animation::Sequence {
+            fps: 30.0,
+            frames_per_image: 1,
+            seed: 0
+        }
+        .images(2.0),
+        60
+    );
+}

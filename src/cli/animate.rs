@@ -1,0 +1,297 @@
+//! `sylva animate`: an image sequence of the scene with its plants swaying in the wind,
+//! one image per 1/fps seconds, resumable after the last image written. The timing and
+//! the per-image refinement are `sylva_systems::animation::Sequence`.
+
+use super::*;
+use indicatif::{ProgressBar, ProgressStyle};
+use sylva::engine::discontinuity::FilteredImage;
+use sylva::scenes::editor;
+use sylva::systems::animation::Sequence;
+use sylva::systems::shown_film;
+
+/// Quality presets of `--preset`.
+#[derive(clap::ValueEnum, Clone, Copy, Debug, PartialEq, Eq)]
+enum Preset {
+    /// 1 camera sample and 1 light sample per hit, adaptive transparency and the
+    /// discontinuity filter on.
+    Interactive,
+    /// 4 camera samples and 4 light samples per hit, exact transparency.
+    Still,
+}
+
+#[derive(Args, Debug)]
+pub(crate) struct AnimateArgs {
+    #[command(flatten)]
+    scene: SceneArgs,
+    /// Seconds of animation.
+    #[arg(long, value_parser = parse_seconds)]
+    seconds: f64,
+    /// Images per second of animation.
+    #[arg(long, default_value_t = 30, value_parser = clap::value_parser!(u32).range(1..=1000))]
+    fps: u32,
+    /// Where image k goes: a path whose `%d` or `%0Nd` (e.g. frame_%04d.png) is replaced
+    /// by k; .png (tone-mapped sRGB) or .exr (linear radiance). The directory is made
+    /// when missing.
+    #[arg(long, short, default_value = "frames/frame_%04d.png")]
+    out: String,
+    /// Skip the images already written (each is written whole or not at all) and render
+    /// from the first one missing; the result is bit for bit an uninterrupted run's.
+    #[arg(long)]
+    resume: bool,
+    /// Image width in pixels [default: height × 4/3, or × the glTF camera's aspect ratio].
+    #[arg(long, value_parser = clap::value_parser!(u32).range(1..=16384))]
+    width: Option<u32>,
+    /// Image height in pixels.
+    #[arg(long, default_value_t = 480, value_parser = clap::value_parser!(u32).range(1..=16384))]
+    height: u32,
+    /// Quality of each image's frames.
+    #[arg(long, value_enum, default_value = "still")]
+    preset: Preset,
+    /// Camera samples per pixel per frame [default: the preset's].
+    #[arg(long, value_parser = clap::value_parser!(u32).range(1..=65536))]
+    spp: Option<u32>,
+    /// Progressive frames accumulated into each image.
+    #[arg(long, default_value_t = 1, value_parser = clap::value_parser!(u32).range(1..=100_000))]
+    frames_per_image: u32,
+    /// The wind that sways the plants (each on a damped spring sized by its height).
+    #[arg(long, value_enum, value_name = "on|off", default_value = "on")]
+    wind: Switch,
+    /// Light the scene with a latitude-longitude HDR environment map (.hdr or .exr).
+    #[arg(long, value_name = "FILE")]
+    env: Option<PathBuf>,
+    /// Virtual directional lights the environment map is discretised into.
+    #[arg(long, default_value_t = 1024, value_parser = clap::value_parser!(u32).range(1..=65536))]
+    lights: u32,
+    /// Exposure in stops, applied before tone mapping (PNG only).
+    #[arg(long, default_value_t = 0.0, allow_hyphen_values = true)]
+    exposure: f32,
+    /// No progress bar or summary.
+    #[arg(long, short)]
+    quiet: bool,
+}
+
+/// A positive, finite number of seconds.
+fn parse_seconds(text: &str) -> Result<f64, String> {
+    match text.parse::<f64>() {
+        Ok(s) if s.is_finite() && s > 0.0 => Ok(s),
+        _ => Err(format!("'{text}' is not a positive number of seconds")),
+    }
+}
+
+/// An output pattern split around its `%d` / `%0Nd`: prefix, digits, suffix.
+#[derive(Clone, Debug, PartialEq)]
+pub(crate) struct FramePattern {
+    prefix: String,
+    digits: usize,
+    suffix: String,
+}
+
+impl FramePattern {
+    /// Parses `frame_%04d.png`; errors say what is wrong with the pattern.
+    pub(crate) fn parse(pattern: &str) -> Result<Self> {
+        let Some(start) = pattern.find('%') else {
+            bail!("--out {pattern}: the pattern needs %d or %0Nd where the image number goes");
+        };
+        let rest = &pattern[start + 1..];
+        let Some(end) = rest.find('d') else {
+            bail!("--out {pattern}: '%' must be followed by d or 0Nd (e.g. frame_%04d.png)");
+        };
+        let width = &rest[..end];
+        let digits = if width.is_empty() {
+            0
+        } else {
+            match width.strip_prefix('0').map(str::parse::<usize>) {
+                Some(Ok(n)) if n <= 10 => n,
+                _ => bail!("--out {pattern}: '%{width}d' is not %d or %0Nd with N up to 10"),
+            }
+        };
+        let suffix = &rest[end + 1..];
+        if suffix.contains('%') {
+            bail!("--out {pattern}: only one image number placeholder is allowed");
+        }
+        let pattern = Self {
+            prefix: pattern[..start].to_string(),
+            digits,
+            suffix: suffix.to_string(),
+        };
+        ImageKind::from_path(&pattern.path(0))?;
+        Ok(pattern)
+    }
+
+    /// The path of image `index`.
+    pub(crate) fn path(&self, index: u32) -> PathBuf {
+        PathBuf::from(format!(
+            "{}{index:0width$}{}",
+            self.prefix,
+            self.suffix,
+            width = self.digits
+        ))
+    }
+}
+
+/// Runs `sylva animate`.
+pub(crate) fn run(args: AnimateArgs) -> Result<()> {
+    let pattern = FramePattern::parse(&args.out)?;
+    if let Some(dir) = pattern
+        .path(0)
+        .parent()
+        .filter(|d| !d.as_os_str().is_empty())
+    {
+        std::fs::create_dir_all(dir)
+            .map_err(|e| anyhow::anyhow!("{}: cannot create the directory: {e}", dir.display()))?;
+    }
+    if !args.exposure.is_finite() {
+        bail!(
+            "--exposure must be a finite number of stops, got {}",
+            args.exposure
+        );
+    }
+    let mut world = World::new();
+    let (mut scene, aspect, environment) =
+        build_lit(&mut world, &args.scene, args.env.as_deref(), args.lights)?;
+    let width = size_camera(
+        &mut scene,
+        aspect,
+        (args.width, args.height),
+        16384,
+        args.exposure,
+    );
+    let preset = match args.preset {
+        Preset::Interactive => Quality::interactive(),
+        Preset::Still => Quality::still(),
+    };
+    let quality = Quality {
+        samples_per_pixel: args.spp.unwrap_or(preset.samples_per_pixel),
+        ..preset
+    };
+    let spawned = spawn(&mut world, scene);
+    if let Some(environment) = environment {
+        world.spawn(environment);
+    }
+    quality.apply(&mut world, spawned.camera);
+    let sequence = Sequence {
+        fps: f64::from(args.fps),
+        frames_per_image: args.frames_per_image,
+        seed: args.scene.seed,
+    };
+    if args.wind == Switch::On {
+        editor::set_wind(&mut world, true, 1.0 / sequence.fps);
+    }
+    let images = sequence.images(args.seconds);
+    let first = if args.resume {
+        (0..images)
+            .find(|&k| !pattern.path(k).exists())
+            .unwrap_or(images)
+    } else {
+        0
+    };
+    if first == images {
+        eprintln!("all {images} images are there already");
+        return Ok(());
+    }
+    sequence.skip(&mut world, 0, first.saturating_sub(1));
+
+    let bar = if args.quiet {
+        ProgressBar::hidden()
+    } else {
+        ProgressBar::new(u64::from(images))
+    };
+    bar.set_style(
+        ProgressStyle::with_template(
+            "{spinner} animating [{bar:40}] {pos}/{len} images, {elapsed_precise} (eta {eta})",
+        )
+        .expect("the template is valid"),
+    );
+    bar.set_position(u64::from(first));
+    let interrupted = interrupt_flag();
+    let stop = StopAt {
+        interrupt: Some(interrupted.clone()),
+        ..StopAt::default()
+    };
+    let mut schedule = frame_schedule();
+    let start = std::time::Instant::now();
+    for index in first..images {
+        let stopped = sequence.render_image(
+            &mut world,
+            &mut schedule,
+            spawned.camera,
+            index,
+            &stop,
+            |_, _| Flow::Continue,
+        );
+        if stopped == Stopped::Interrupted {
+            bar.finish_and_clear();
+            eprintln!(
+                "interrupted: images 0 to {} are written; --resume continues with image {index}",
+                index.saturating_sub(1)
+            );
+            std::process::exit(130);
+        }
+        let film = world
+            .get::<Film>(spawned.camera)
+            .ok_or_else(|| anyhow::anyhow!("the camera has no film"))?;
+        let metadata: Vec<(String, String)> = [
+            (
+                "Software",
+                format!("sylva {} animate", env!("CARGO_PKG_VERSION")),
+            ),
+            ("sylva.scene", scene_label(&args.scene)),
+            ("sylva.seed", args.scene.seed.to_string()),
+            ("sylva.size", format!("{width}x{}", args.height)),
+            ("sylva.image", index.to_string()),
+            ("sylva.time", format!("{}", f64::from(index) / sequence.fps)),
+            ("sylva.frames", film.frames().to_string()),
+            ("sylva.spp_per_frame", quality.samples_per_pixel.to_string()),
+            ("sylva.wind", format!("{:?}", args.wind).to_lowercase()),
+        ]
+        .map(|(k, v)| (k.to_string(), v))
+        .into();
+        shown_film(film, world.get::<FilteredImage>(spawned.camera)).write_with(
+            &pattern.path(index),
+            args.exposure,
+            &metadata,
+        )?;
+        bar.inc(1);
+    }
+    bar.finish_and_clear();
+    if !args.quiet {
+        let rendered = images - first;
+        println!(
+            "{rendered} images of {} ({}x{}, {} fps, {} frames each) in {:.1} s ({:.2} s per image): {} … {}",
+            scene_label(&args.scene),
+            width,
+            args.height,
+            args.fps,
+            args.frames_per_image,
+            start.elapsed().as_secs_f64(),
+            start.elapsed().as_secs_f64() / f64::from(rendered),
+            pattern.path(first).display(),
+            pattern.path(images - 1).display(),
+        );
+    }
+    Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn frame_patterns_number_their_images_and_bad_ones_say_why() {
+        let p = FramePattern::parse("out/frame_%04d.png").unwrap();
+        assert_eq!(p.path(7), PathBuf::from("out/frame_0007.png"));
+        assert_eq!(p.path(12345), PathBuf::from("out/frame_12345.png"));
+        let plain = FramePattern::parse("f%d.exr").unwrap();
+        assert_eq!(plain.path(3), PathBuf::from("f3.exr"));
+        for (bad, says) in [
+            ("frame.png", "needs %d"),
+            ("frame_%4x.png", "0Nd"),
+            ("frame_%4d.png", "%0Nd"),
+            ("frame_%04d_%d.png", "only one"),
+            ("frame_%04d.jpg", "jpg"),
+        ] {
+            let error = FramePattern::parse(bad).unwrap_err().to_string();
+            assert!(error.contains(says), "{bad}: {error}");
+        }
+    }
+}
