@@ -147,15 +147,16 @@ pub(crate) fn run(args: AnimateArgs) -> Result<()> {
         );
     }
     let mut world = World::new();
-    let (mut scene, aspect, environment) =
-        build_lit(&mut world, &args.scene, args.env.as_deref(), args.lights)?;
-    let width = size_camera(
-        &mut scene,
-        aspect,
-        (args.width, args.height),
-        16384,
-        args.exposure,
-    );
+    let (scene, width, environment) = build_framed(
+        &mut world,
+        &args.scene,
+        (args.env.as_deref(), args.lights),
+        &Framing {
+            size: (args.width, args.height),
+            max_width: 16384,
+            exposure: args.exposure,
+        },
+    )?;
     let preset = match args.preset {
         Preset::Interactive => Quality::interactive(),
         Preset::Still => Quality::still(),

@@ -112,6 +112,11 @@ fn init_tracing_filtered(
 
 fn check_output_path(path: &Path) -> Result<()> {
     ImageKind::from_path(path)?;
+    check_parent_dir(path)
+}
+
+/// Refuses a file to write whose directory does not exist, naming both.
+fn check_parent_dir(path: &Path) -> Result<()> {
     let dir = path
         .parent()
         .filter(|d| !d.as_os_str().is_empty())
@@ -190,6 +195,35 @@ fn build_lit(
         scene.environment = None;
     }
     Ok((scene, aspect, environment))
+}
+
+/// How a scene's camera is sized and exposed ([`size_camera`]).
+struct Framing {
+    /// Width (or `None`: from the height and the glTF camera's aspect) and height.
+    size: (Option<u32>, u32),
+    /// The widest image allowed.
+    max_width: u32,
+    /// Exposure in stops.
+    exposure: f32,
+}
+
+/// [`build_lit`], then the camera sized and exposed as `framing` says; returns the
+/// scene, its width and the environment light.
+fn build_framed(
+    world: &mut World,
+    args: &SceneArgs,
+    (env, lights): (Option<&Path>, u32),
+    framing: &Framing,
+) -> Result<(SceneBuild, u32, Option<EnvironmentLight>)> {
+    let (mut scene, aspect, environment) = build_lit(world, args, env, lights)?;
+    let width = size_camera(
+        &mut scene,
+        aspect,
+        framing.size,
+        framing.max_width,
+        framing.exposure,
+    );
+    Ok((scene, width, environment))
 }
 
 /// Sizes the scene's camera: `width` when given, else `height` × `aspect` (a glTF

@@ -92,17 +92,7 @@ pub(crate) fn run(args: ViewArgs) -> Result<()> {
         None => None,
     };
     if let Some(record) = &args.record {
-        let dir = record
-            .parent()
-            .filter(|d| !d.as_os_str().is_empty())
-            .unwrap_or(Path::new("."));
-        if !dir.is_dir() {
-            bail!(
-                "{}: the directory {} does not exist",
-                record.display(),
-                dir.display()
-            );
-        }
+        check_parent_dir(record)?;
     }
     if let Some(dir) = &args.frames_out {
         std::fs::create_dir_all(dir)
@@ -288,13 +278,16 @@ fn load_scene(
     (width, height): (Option<u32>, u32),
 ) -> Result<LoadedScene> {
     let mut world = World::new();
-    let (mut scene, aspect, environment) = build_lit(
+    let (scene, width, environment) = build_framed(
         &mut world,
         scene_args,
-        settings.env.as_deref(),
-        settings.lights,
+        (settings.env.as_deref(), settings.lights),
+        &Framing {
+            size: (width, height),
+            max_width: 8192,
+            exposure: settings.exposure,
+        },
     )?;
-    let width = size_camera(&mut scene, aspect, (width, height), 8192, settings.exposure);
     let start_pose = scene.camera_transform;
     let overview = {
         use glam::Vec3Swizzles;
