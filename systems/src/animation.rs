@@ -34,7 +34,13 @@ impl Sequence {
     /// have.
     pub fn skip(&self, world: &mut World, from: u32, to: u32) {
         world.init_resource::<AnimationClock>();
-        for _ in from..to {
+        // The schedule runs `animate` only while something sways; so does this.
+        let sways = world
+            .query_filtered::<(), With<sylva_engine::sway::Sway>>()
+            .iter(world)
+            .next()
+            .is_some();
+        for _ in (from..to).filter(|_| sways) {
             world.resource_mut::<AnimationClock>().frame_seconds = 1.0 / self.fps;
             // `animate` cannot fail to run: every parameter it takes exists.
             let _ = world.run_system_once(animate);
