@@ -88,3 +88,73 @@ fn an_output_without_an_image_number_is_refused() {
     );
     std::fs::remove_dir_all(&dir).ok();
 }
+
+#[test]
+fn the_preview_is_an_animated_png_of_every_image_also_after_a_resume() {
+    let dir = temp_dir("preview");
+    let preview = dir.join("preview.png");
+    let run = |extra: &[&str]| {
+        Command::new(env!("CARGO_BIN_EXE_sylva"))
+            .args(["animate", "--seconds", "0.3", "--fps", "10"])
+            .args([
+                "--width",
+                "32",
+                "--height",
+                "24",
+                "--preset",
+                "interactive",
+                "--quiet",
+            ])
+            .arg("--out")
+            .arg(dir.join("f_%d.png"))
+            .arg("--preview")
+            .arg(&preview)
+            .args(extra)
+            .output()
+            .unwrap()
+    };
+    let first = run(&[]);
+    assert!(
+        first.status.success(),
+        "{}",
+        String::from_utf8_lossy(&first.stderr)
+    );
+    let frames = |path: &Path| {
+        let mut reader =
+            png::Decoder::new(std::io::BufReader::new(std::fs::File::open(path).unwrap()))
+                .read_info()
+                .unwrap();
+        let count = reader
+            .info()
+            .animation_control()
+            .map_or(1, |a| a.num_frames);
+        (0..count)
+            .map(|_| {
+                let mut buffer = vec![0; reader.output_buffer_size().unwrap()];
+                let info = reader.next_frame(&mut buffer).unwrap();
+                buffer.truncate(info.buffer_size());
+                buffer
+            })
+            .collect::<Vec<_>>()
+    };
+    let shown = frames(&preview);
+    assert_eq!(shown.len(), 3);
+    for (k, frame) in shown.iter().enumerate() {
+        assert_eq!(
+            frame,
+            &frames(&dir.join(format!("f_{k}.png")))[0],
+            "image {k}"
+        );
+    }
+    // Resumed after image 0, the preview still holds all three.
+    std::fs::remove_file(dir.join("f_1.png")).unwrap();
+    std::fs::remove_file(dir.join("f_2.png")).unwrap();
+    let resumed = run(&["--resume"]);
+    assert!(
+        resumed.status.success(),
+        "{}",
+        String::from_utf8_lossy(&resumed.stderr)
+    );
+    assert_eq!(frames(&preview), shown);
+    std::fs::remove_dir_all(&dir).ok();
+}

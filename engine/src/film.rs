@@ -664,6 +664,71 @@ fn sort_exr_header_attributes(file: &mut [u8]) -> Result<(), String> {
     Ok(())
 }
 
+/// Writes `frames` (8-bit RGBA, each `width` × `height`, row by row from the top) as an
+/// animated PNG that shows `fps` of them per second and loops, with `metadata` as tEXt
+/// chunks, atomically: an animation's preview.
+pub fn write_apng(
+    path: &Path,
+    (width, height): (u32, u32),
+    frames: &[Vec<u8>],
+    fps: u16,
+    metadata: &[(String, String)],
+) -> Result<(), OutputError> {
+    write_atomically(path, |tmp| {
+        let size = width as usize * height as usize * 4;
+        if frames.is_empty() || frames.iter().any(|f| f.len() != size) {
+            return Err(format!(
+                "{} frames for a {width}x{height} RGBA animation, some of another size or none",
+                frames.len()
+            ));
+        }
+        let file = std::fs::File::create(tmp).map_err(|e| e.to_string())?;
+        let mut encoder = png::Encoder::new(std::io::BufWriter::new(file), width, height);
+        encoder.set_color(png::ColorType::Rgba);
+        encoder.set_depth(png::BitDepth::Eight);
+        let count = u32::try_from(frames.len()).map_err(|e| e.to_string())?;
+        encoder.set_animated(count, 0).map_err(|e| e.to_string())?;
+        encoder
+            .set_frame_delay(1, fps.max(1))
+            .map_err(|e| e.to_string())?;
+        for (key, value) in metadata {
+            let _ = encoder.add_text_chunk(key.clone(), value.clone());
+        }
+        let mut writer = encoder.write_header().map_err(|e| e.to_string())?;
+        for frame in frames {
+            writer.write_image_data(frame).map_err(|e| e.to_string())?;
+        }
+        writer.finish().map_err(|e| e.to_string())
+    })
+}
+
+/// Reads an 8-bit RGB or RGBA PNG (the first frame of an animated one) as RGBA with its
+/// size.
+pub fn read_rgba8_png(path: &Path) -> Result<((u32, u32), Vec<u8>), OutputError> {
+    let fail = |reason: String| OutputError::Write {
+        path: path.to_owned(),
+        reason: format!("cannot read it back: {reason}"),
+    };
+    let file = std::fs::File::open(path).map_err(|e| fail(e.to_string()))?;
+    let mut reader = png::Decoder::new(std::io::BufReader::new(file))
+        .read_info()
+        .map_err(|e| fail(e.to_string()))?;
+    let mut buffer = vec![0; reader.output_buffer_size().unwrap_or(0)];
+    let info = reader
+        .next_frame(&mut buffer)
+        .map_err(|e| fail(e.to_string()))?;
+    let pixels = &buffer[..info.buffer_size()];
+    let rgba = match (info.color_type, info.bit_depth) {
+        (png::ColorType::Rgba, png::BitDepth::Eight) => pixels.to_vec(),
+        (png::ColorType::Rgb, png::BitDepth::Eight) => pixels
+            .chunks_exact(3)
+            .flat_map(|p| [p[0], p[1], p[2], 255])
+            .collect(),
+        (color, depth) => return Err(fail(format!("{color:?} at {depth:?} is not 8-bit RGB(A)"))),
+    };
+    Ok(((info.width, info.height), rgba))
+}
+
 /// Writes `width × height` sRGB8 RGBA pixels (row by row from the top) as a PNG with
 /// `metadata` as tEXt chunks (keywords the format cannot hold are left out), atomically
 /// (temporary file, then rename): a screenshot is written the way a render is.
@@ -840,5 +905,37 @@ mod tests {
         }
         assert_eq!(filmic(f32::NAN), 0.0);
         assert_eq!(filmic(f32::INFINITY), 1.0);
+    }
+
+    #[test]
+    fn an_animated_png_holds_every_frame_and_loops() {
+        let dir = std::env::temp_dir().join(format!("sylva-apng-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        let path = dir.join("preview.png");
+        let frames: Vec<Vec<u8>> = (0..3u8)
+            .map(|k| {
+                (0..2 * 3 * 4)
+                    .map(|i| (i as u8).wrapping_mul(7) ^ (k * 40))
+                    .collect()
+            })
+            .collect();
+        write_apng(&path, (2, 3), &frames, 12, &[]).unwrap();
+        let file = std::fs::File::open(&path).unwrap();
+        let mut reader = png::Decoder::new(std::io::BufReader::new(file))
+            .read_info()
+            .unwrap();
+        let control = reader.info().animation_control().copied().unwrap();
+        assert_eq!((control.num_frames, control.num_plays), (3, 0));
+        for frame in &frames {
+            let mut buffer = vec![0; reader.output_buffer_size().unwrap()];
+            let info = reader.next_frame(&mut buffer).unwrap();
+            assert_eq!(&buffer[..info.buffer_size()], &frame[..]);
+            let control = reader.info().frame_control().copied().unwrap();
+            assert_eq!((control.delay_num, control.delay_den), (1, 12));
+        }
+        assert_eq!(read_rgba8_png(&path).unwrap(), ((2, 3), frames[0].clone()));
+        let wrong = write_apng(&dir.join("bad.png"), (2, 3), &[vec![0; 5]], 12, &[]);
+        assert!(wrong.unwrap_err().to_string().contains("bad.png"));
+        std::fs::remove_dir_all(&dir).ok();
     }
 }

@@ -34,6 +34,10 @@ pub(crate) struct AnimateArgs {
     /// when missing.
     #[arg(long, short, default_value = "frames/frame_%04d.png")]
     out: String,
+    /// Also write the whole sequence as one animated PNG (APNG) that loops at --fps (its
+    /// directory is made when missing).
+    #[arg(long, value_name = "FILE.png")]
+    preview: Option<PathBuf>,
     /// Skip the images already written (each is written whole or not at all) and render
     /// from the first one missing; the result is bit for bit an uninterrupted run's.
     #[arg(long)]
@@ -132,13 +136,21 @@ impl FramePattern {
 /// Runs `sylva animate`.
 pub(crate) fn run(args: AnimateArgs) -> Result<()> {
     let pattern = FramePattern::parse(&args.out)?;
-    if let Some(dir) = pattern
-        .path(0)
-        .parent()
-        .filter(|d| !d.as_os_str().is_empty())
+    if let Some(preview) = &args.preview
+        && ImageKind::from_path(preview)? != ImageKind::Png
     {
-        std::fs::create_dir_all(dir)
-            .map_err(|e| anyhow::anyhow!("{}: cannot create the directory: {e}", dir.display()))?;
+        bail!(
+            "--preview {}: an animated preview is a .png file",
+            preview.display()
+        );
+    }
+    let outputs = [Some(pattern.path(0)), args.preview.clone()];
+    for dir in outputs.iter().flatten().filter_map(|p| p.parent()) {
+        if !dir.as_os_str().is_empty() {
+            std::fs::create_dir_all(dir).map_err(|e| {
+                anyhow::anyhow!("{}: cannot create the directory: {e}", dir.display())
+            })?;
+        }
     }
     if !args.exposure.is_finite() {
         bail!(
@@ -191,6 +203,22 @@ pub(crate) fn run(args: AnimateArgs) -> Result<()> {
         return Ok(());
     }
     sequence.skip(&mut world, 0, first.saturating_sub(1));
+    // The preview's frames: those already written are read back (PNG only: EXR images
+    // would need tone mapping again), the new ones kept as they are written.
+    let mut preview_frames = Vec::new();
+    if args.preview.is_some() {
+        for index in 0..first {
+            let path = pattern.path(index);
+            if ImageKind::from_path(&path)? != ImageKind::Png {
+                bail!(
+                    "--preview with --resume reads the images already written back, and {} is \
+                     not a PNG: render the sequence as PNG or make the preview in a full run",
+                    path.display()
+                );
+            }
+            preview_frames.push(sylva::engine::film::read_rgba8_png(&path)?.1);
+        }
+    }
 
     let bar = if args.quiet {
         ProgressBar::hidden()
@@ -247,14 +275,27 @@ pub(crate) fn run(args: AnimateArgs) -> Result<()> {
         ]
         .map(|(k, v)| (k.to_string(), v))
         .into();
-        shown_film(film, world.get::<FilteredImage>(spawned.camera)).write_with(
-            &pattern.path(index),
-            args.exposure,
-            &metadata,
-        )?;
+        let shown = shown_film(film, world.get::<FilteredImage>(spawned.camera));
+        shown.write_with(&pattern.path(index), args.exposure, &metadata)?;
+        if args.preview.is_some() {
+            preview_frames.push(shown.to_srgba8(args.exposure));
+        }
         bar.inc(1);
     }
     bar.finish_and_clear();
+    if let Some(preview) = &args.preview {
+        let fps = u16::try_from(args.fps).unwrap_or(u16::MAX);
+        sylva::engine::film::write_apng(
+            preview,
+            (width, args.height),
+            &preview_frames,
+            fps,
+            &[(
+                "Software".to_string(),
+                format!("sylva {} animate", env!("CARGO_PKG_VERSION")),
+            )],
+        )?;
+    }
     if !args.quiet {
         let rendered = images - first;
         println!(
