@@ -137,6 +137,9 @@ pub struct EcosystemSpec {
     /// Every plant where it stands (a saved, edited ecosystem): when given, the layers'
     /// counts and placement rules are not used, only their species.
     pub plants: Option<Vec<PlacedPlant>>,
+    /// The wind that sways the plants when the wind is on (`sylva animate`, the viewer's
+    /// G); the engine's default wind when `None`.
+    pub wind: Option<sylva_engine::sway::Wind>,
 }
 
 /// A plant of an explicit plant list: its species by name, its layer and its transform.
@@ -296,6 +299,7 @@ impl EcosystemSpec {
                 },
             ],
             plants: None,
+            wind: None,
             clear_radius: 2.5,
             sun: Some(default_sun()),
             sky: Some(default_sky()),
@@ -401,6 +405,7 @@ impl EcosystemSpec {
                 ),
             ],
             plants: None,
+            wind: None,
             clear_radius: 2.0,
             sun: Some(default_sun()),
             sky: Some(default_sky()),
@@ -493,6 +498,7 @@ impl EcosystemSpec {
                 ),
             ],
             plants: None,
+            wind: None,
             clear_radius: 2.0,
             sun: Some(default_sun()),
             sky: Some(default_sky()),
@@ -772,6 +778,7 @@ pub fn build(spec: &EcosystemSpec, seed: u64) -> Result<SceneBuild, SceneError> 
         shaders,
         plants,
         sun: spec.sun.map(|s| s.light()),
+        wind: spec.wind,
         sky: match spec.sky {
             Some(SkySpec::Gradient(gradient)) => Some(gradient),
             _ => None,

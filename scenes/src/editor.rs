@@ -5,7 +5,7 @@
 //! pixel operations (`select_at`, `insert_at`, …) are what a viewer's clicks and keys do:
 //! they pick through the camera and keep the history and the selection in the world.
 
-use crate::{LayerSpacing, move_plant, plant_at};
+use crate::{LayerSpacing, SceneWind, move_plant, plant_at};
 use bevy_ecs::prelude::*;
 use sylva_engine::components::{Instance, Layer, Transform};
 use sylva_engine::geometry::{GeometryId, GeometryLibrary};
@@ -366,7 +366,10 @@ pub fn set_wind(world: &mut World, on: bool, frame_seconds: f64) -> bool {
                 .entity_mut(plant)
                 .insert((sway_for_height(height), RestPose(rest)));
         }
-        world.insert_resource(Wind::default());
+        let wind = world
+            .get_resource::<SceneWind>()
+            .map_or_else(Wind::default, |w| w.0);
+        world.insert_resource(wind);
     } else {
         world.remove_resource::<Wind>();
         let swaying: Vec<(Entity, Transform)> = world
@@ -794,5 +797,20 @@ mod tests {
         // ... and layer 0 has no rule.
         select(&mut world, Some(plants[0]));
         assert!(insert_at_ground(&mut world, (0.1, 1.0)).is_some());
+    }
+
+    #[test]
+    fn the_wind_turned_on_is_the_scene_files_or_the_default() {
+        let (mut world, _) = meadow();
+        assert!(set_wind(&mut world, true, 0.1));
+        assert_eq!(*world.resource::<Wind>(), Wind::default());
+        set_wind(&mut world, false, 0.1);
+        let gale = Wind {
+            speed: 20.0,
+            ..Wind::default()
+        };
+        world.insert_resource(SceneWind(gale));
+        set_wind(&mut world, true, 0.1);
+        assert_eq!(*world.resource::<Wind>(), gale);
     }
 }

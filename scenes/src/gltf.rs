@@ -1241,6 +1241,7 @@ impl GltfScene {
             species,
             layers: vec!["glTF nodes".into()],
             layer_spacing: vec![0.0],
+            wind: None,
             terrain: None,
             height_field: None,
             shaders: self.shaders,

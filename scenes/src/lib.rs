@@ -113,6 +113,11 @@ pub struct Plant {
 #[derive(Clone, Debug, Default, Resource)]
 pub struct LayerSpacing(pub Vec<f32>);
 
+/// The wind a scene file describes: what turning the wind on blows (`editor::set_wind`),
+/// a world resource while the wind is off too.
+#[derive(Clone, Copy, Debug, Resource)]
+pub struct SceneWind(pub sylva_engine::sway::Wind);
+
 /// The height field plants stand on, as a world resource for placing plants later.
 #[derive(Clone, Debug, Resource)]
 pub struct Terrain(pub HeightField);
@@ -142,6 +147,8 @@ pub struct SceneBuild {
     pub plants: Vec<Plant>,
     /// The sun.
     pub sun: Option<DirectionalLight>,
+    /// The scene's wind, for when the wind is turned on ([`SceneWind`]).
+    pub wind: Option<sylva_engine::sway::Wind>,
     /// The gradient sky, if any.
     pub sky: Option<SkyLight>,
     /// An environment light (the baked procedural sky, or a map), if any.
@@ -239,6 +246,9 @@ pub struct SpawnedScene {
 pub fn spawn(world: &mut World, scene: SceneBuild) -> SpawnedScene {
     world.insert_resource(scene.library);
     world.insert_resource(LayerSpacing(scene.layer_spacing));
+    if let Some(wind) = scene.wind {
+        world.insert_resource(SceneWind(wind));
+    }
     if let Some(field) = scene.height_field {
         world.insert_resource(Terrain(field));
     }

@@ -41,6 +41,13 @@
 //! azimuth = -50.0
 //! irradiance = [3.2, 3.0, 2.7]
 //!
+//! [wind]                   # optional: what the wind blows when it is on
+//! speed = 6.0              # m/s, 0 … 60
+//! direction = 90.0         # degrees from +Z towards +X it blows toward (default 90: +X)
+//! gustiness = 0.5          # optional: gusts as a fraction of the speed, 0 … 2
+//! gust_frequency = 0.3     # optional, Hz
+//! gust_wavelength = 25.0   # optional, metres between gust fronts
+//!
 //! [sky]                    # the Preetham daylight model for the sun above …
 //! turbidity = 3.0
 //! # … or a gradient: zenith = [0.22, 0.42, 0.95], horizon = [0.75, 0.85, 1.0],
@@ -111,6 +118,17 @@ struct Document {
     sky: Option<SkyDoc>,
     camera: Option<CameraDoc>,
     plant: Option<Vec<Spanned<PlantDoc>>>,
+    wind: Option<WindDoc>,
+}
+
+#[derive(Deserialize)]
+#[serde(deny_unknown_fields)]
+struct WindDoc {
+    speed: Spanned<f32>,
+    direction: Option<Spanned<f32>>,
+    gustiness: Option<Spanned<f32>>,
+    gust_frequency: Option<Spanned<f32>>,
+    gust_wavelength: Option<Spanned<f32>>,
 }
 
 #[derive(Deserialize)]
@@ -369,6 +387,37 @@ impl SceneFile {
                     Some(v) => cx.color(v, "sun.irradiance", 1e6)?,
                     None => Vec3::new(3.2, 3.0, 2.7),
                 },
+            });
+        }
+        if let Some(w) = &doc.wind {
+            let calm = sylva_engine::sway::Wind::default();
+            let direction = match &w.direction {
+                Some(d) => cx.check(d, "wind.direction", -360.0, 360.0)?.to_radians(),
+                None => 90f32.to_radians(),
+            };
+            let optional = |value: &Option<Spanned<f32>>, key, low, high, default| match value {
+                Some(v) => cx.check(v, key, low, high),
+                None => Ok(default),
+            };
+            spec.wind = Some(sylva_engine::sway::Wind {
+                direction: glam::Vec2::new(direction.sin(), direction.cos()),
+                speed: cx.check(&w.speed, "wind.speed", 0.0, 60.0)?,
+                gustiness: optional(&w.gustiness, "wind.gustiness", 0.0, 2.0, calm.gustiness)?,
+                gust_frequency: optional(
+                    &w.gust_frequency,
+                    "wind.gust_frequency",
+                    0.001,
+                    20.0,
+                    calm.gust_frequency,
+                )?,
+                gust_wavelength: optional(
+                    &w.gust_wavelength,
+                    "wind.gust_wavelength",
+                    0.1,
+                    10_000.0,
+                    calm.gust_wavelength,
+                )?,
+                strength: 1.0,
             });
         }
         if let Some(s) = &doc.sky {
@@ -642,6 +691,23 @@ mod tests {
     }
 
     #[test]
+    fn a_wind_is_read_with_its_defaults() {
+        let file = parse("preset = \"meadow\"\n[wind]\nspeed = 8\ndirection = 0\n").unwrap();
+        let wind = file.spec.wind.expect("a wind");
+        assert_eq!(wind.speed, 8.0);
+        assert!(
+            (wind.direction - glam::Vec2::Y).length() < 1e-6,
+            "toward +Z"
+        );
+        let calm = sylva_engine::sway::Wind::default();
+        assert_eq!(
+            (wind.gustiness, wind.gust_frequency, wind.gust_wavelength),
+            (calm.gustiness, calm.gust_frequency, calm.gust_wavelength)
+        );
+        assert_eq!(parse("preset = \"meadow\"\n").unwrap().spec.wind, None);
+    }
+
+    #[test]
     fn a_preset_with_overrides() {
         let file =
             parse("preset = \"forest\"\nseed = 9\n[terrain]\ncells = 50\nnoise = \"ridged\"\n")
@@ -774,6 +840,17 @@ target = [0, 0]
                 "my.toml:2:13: sun.elevation",
                 "out of range",
             ),
+            (
+                "[wind]\nspeed = -3\n",
+                "my.toml:2:9: wind.speed",
+                "out of range",
+            ),
+            (
+                "[wind]\nspeed = 3\ngust_wavelength = 0\n",
+                "my.toml:3:19: wind.gust_wavelength",
+                "out of range",
+            ),
+            ("[wind]\ndirection = 90\n", "my.toml", "speed"),
             ("[terrain\n", "my.toml:1:", ""),
             (
                 "[sky]\nturbidity = 3\nzenith = [0, 0, 1]\n",
