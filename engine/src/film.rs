@@ -674,32 +674,17 @@ pub fn write_apng(
     fps: u16,
     metadata: &[(String, String)],
 ) -> Result<(), OutputError> {
-    write_atomically(path, |tmp| {
-        let size = width as usize * height as usize * 4;
-        if frames.is_empty() || frames.iter().any(|f| f.len() != size) {
-            return Err(format!(
+    let size = width as usize * height as usize * 4;
+    if frames.is_empty() || frames.iter().any(|f| f.len() != size) {
+        return Err(OutputError::Write {
+            path: path.to_owned(),
+            reason: format!(
                 "{} frames for a {width}x{height} RGBA animation, some of another size or none",
                 frames.len()
-            ));
-        }
-        let file = std::fs::File::create(tmp).map_err(|e| e.to_string())?;
-        let mut encoder = png::Encoder::new(std::io::BufWriter::new(file), width, height);
-        encoder.set_color(png::ColorType::Rgba);
-        encoder.set_depth(png::BitDepth::Eight);
-        let count = u32::try_from(frames.len()).map_err(|e| e.to_string())?;
-        encoder.set_animated(count, 0).map_err(|e| e.to_string())?;
-        encoder
-            .set_frame_delay(1, fps.max(1))
-            .map_err(|e| e.to_string())?;
-        for (key, value) in metadata {
-            let _ = encoder.add_text_chunk(key.clone(), value.clone());
-        }
-        let mut writer = encoder.write_header().map_err(|e| e.to_string())?;
-        for frame in frames {
-            writer.write_image_data(frame).map_err(|e| e.to_string())?;
-        }
-        writer.finish().map_err(|e| e.to_string())
-    })
+            ),
+        });
+    }
+    write_rgba8_frames(path, (width, height), frames, Some(fps), metadata)
 }
 
 /// Reads an 8-bit RGB or RGBA PNG (the first frame of an animated one) as RGBA with its
@@ -738,23 +723,47 @@ pub fn write_rgba8_png(
     rgba: &[u8],
     metadata: &[(String, String)],
 ) -> Result<(), OutputError> {
+    if rgba.len() != width as usize * height as usize * 4 {
+        return Err(OutputError::Write {
+            path: path.to_owned(),
+            reason: format!("{} bytes for a {width}x{height} RGBA image", rgba.len()),
+        });
+    }
+    write_rgba8_frames(path, (width, height), &[rgba], None, metadata)
+}
+
+/// Writes checked 8-bit RGBA `frames` as a PNG, animated at `fps` (looping) when given,
+/// with `metadata` as tEXt chunks (keywords the format cannot hold are left out),
+/// atomically.
+fn write_rgba8_frames(
+    path: &Path,
+    (width, height): (u32, u32),
+    frames: &[impl AsRef<[u8]>],
+    fps: Option<u16>,
+    metadata: &[(String, String)],
+) -> Result<(), OutputError> {
     write_atomically(path, |tmp| {
-        if rgba.len() != width as usize * height as usize * 4 {
-            return Err(format!(
-                "{} bytes for a {width}x{height} RGBA image",
-                rgba.len()
-            ));
-        }
         let file = std::fs::File::create(tmp).map_err(|e| e.to_string())?;
         let mut encoder = png::Encoder::new(std::io::BufWriter::new(file), width, height);
         encoder.set_color(png::ColorType::Rgba);
         encoder.set_depth(png::BitDepth::Eight);
+        if let Some(fps) = fps {
+            let count = u32::try_from(frames.len()).map_err(|e| e.to_string())?;
+            encoder.set_animated(count, 0).map_err(|e| e.to_string())?;
+            encoder
+                .set_frame_delay(1, fps.max(1))
+                .map_err(|e| e.to_string())?;
+        }
         for (key, value) in metadata {
             // A keyword the format cannot hold is skipped rather than failing the image.
             let _ = encoder.add_text_chunk(key.clone(), value.clone());
         }
         let mut writer = encoder.write_header().map_err(|e| e.to_string())?;
-        writer.write_image_data(rgba).map_err(|e| e.to_string())?;
+        for frame in frames {
+            writer
+                .write_image_data(frame.as_ref())
+                .map_err(|e| e.to_string())?;
+        }
         writer.finish().map_err(|e| e.to_string())
     })
 }

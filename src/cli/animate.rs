@@ -9,16 +9,6 @@ use sylva::scenes::editor;
 use sylva::systems::animation::Sequence;
 use sylva::systems::shown_film;
 
-/// Quality presets of `--preset`.
-#[derive(clap::ValueEnum, Clone, Copy, Debug, PartialEq, Eq)]
-enum Preset {
-    /// 1 camera sample and 1 light sample per hit, adaptive transparency and the
-    /// discontinuity filter on.
-    Interactive,
-    /// 4 camera samples and 4 light samples per hit, exact transparency.
-    Still,
-}
-
 #[derive(Args, Debug)]
 pub(crate) struct AnimateArgs {
     #[command(flatten)]
@@ -152,12 +142,7 @@ pub(crate) fn run(args: AnimateArgs) -> Result<()> {
             })?;
         }
     }
-    if !args.exposure.is_finite() {
-        bail!(
-            "--exposure must be a finite number of stops, got {}",
-            args.exposure
-        );
-    }
+    check_exposure(args.exposure)?;
     let mut world = World::new();
     let (scene, width, environment) = build_framed(
         &mut world,
@@ -169,10 +154,7 @@ pub(crate) fn run(args: AnimateArgs) -> Result<()> {
             exposure: args.exposure,
         },
     )?;
-    let preset = match args.preset {
-        Preset::Interactive => Quality::interactive(),
-        Preset::Still => Quality::still(),
-    };
+    let preset = args.preset.quality();
     let quality = Quality {
         samples_per_pixel: args.spp.unwrap_or(preset.samples_per_pixel),
         ..preset

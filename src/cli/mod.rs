@@ -70,6 +70,34 @@ impl SceneArgs {
     }
 }
 
+/// Quality presets of `--preset`.
+#[derive(clap::ValueEnum, Clone, Copy, Debug, PartialEq, Eq)]
+enum Preset {
+    /// 1 camera sample and 1 light sample per hit, adaptive transparency and the
+    /// discontinuity filter on: fast frames to refine progressively.
+    Interactive,
+    /// 4 camera samples and 4 light samples per hit, exact transparency.
+    Still,
+}
+
+impl Preset {
+    /// The library's quality of this preset.
+    fn quality(self) -> Quality {
+        match self {
+            Preset::Interactive => Quality::interactive(),
+            Preset::Still => Quality::still(),
+        }
+    }
+}
+
+/// Refuses an exposure that is not a finite number of stops.
+fn check_exposure(exposure: f32) -> Result<()> {
+    if !exposure.is_finite() {
+        bail!("--exposure must be a finite number of stops, got {exposure}");
+    }
+    Ok(())
+}
+
 /// `on` or `off`.
 #[derive(clap::ValueEnum, Clone, Copy, Debug, PartialEq, Eq)]
 enum Switch {

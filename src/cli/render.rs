@@ -9,16 +9,6 @@ use sylva::engine::film::Tile;
 use sylva::scenes::SceneStats;
 use sylva::systems::shown_film;
 
-/// Quality presets of `--preset`.
-#[derive(clap::ValueEnum, Clone, Copy, Debug, PartialEq, Eq)]
-enum Preset {
-    /// 1 camera sample and 1 light sample per hit, adaptive transparency and the
-    /// discontinuity filter on: fast frames to refine progressively.
-    Interactive,
-    /// 4 camera samples and 4 light samples per hit, exact transparency.
-    Still,
-}
-
 /// Parses `NEAR,FAR,DEPTH_NEAR,DEPTH_FAR[,WEIGHT]` into a checked transparency curve.
 fn parse_transparency_curve(text: &str) -> Result<TransparencyCurve, String> {
     let parts: Vec<&str> = text.split(',').map(str::trim).collect();
@@ -201,11 +191,7 @@ fn image_metadata(
 
 /// The quality `render` asks for: the preset's, with the flags that override it.
 fn quality(args: &RenderArgs) -> Quality {
-    let preset = match args.preset {
-        Some(Preset::Interactive) => Quality::interactive(),
-        Some(Preset::Still) => Quality::still(),
-        None => Quality::default(),
-    };
+    let preset = args.preset.map_or_else(Quality::default, Preset::quality);
     let on =
         |switch: Option<Switch>, preset_on: bool| switch.map_or(preset_on, |s| s == Switch::On);
     Quality {
@@ -247,12 +233,7 @@ fn snapshot_path(out: &Path, frames: u32) -> PathBuf {
 /// Runs `sylva render`.
 pub(crate) fn run(args: RenderArgs) -> Result<()> {
     check_output_path(&args.out)?;
-    if !args.exposure.is_finite() {
-        bail!(
-            "--exposure must be a finite number of stops, got {}",
-            args.exposure
-        );
-    }
+    check_exposure(args.exposure)?;
     let _trace_guard = init_tracing(args.trace.as_deref());
     let mut world = World::new();
     let (scene, width, environment) = build_framed(

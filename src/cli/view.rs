@@ -70,12 +70,7 @@ struct FrameReady;
 
 /// Runs `sylva view`.
 pub(crate) fn run(args: ViewArgs) -> Result<()> {
-    if !args.exposure.is_finite() {
-        bail!(
-            "--exposure must be a finite number of stops, got {}",
-            args.exposure
-        );
-    }
+    check_exposure(args.exposure)?;
     let script = match &args.script {
         Some(path) => {
             let text = std::fs::read_to_string(path)
