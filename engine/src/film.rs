@@ -448,10 +448,7 @@ impl Film {
         let scale = 2f32.powf(exposure);
         self.mean_rgb()
             .iter()
-            .flat_map(|p| {
-                let [r, g, b] = p.map(|v| (linear_to_srgb(filmic(v * scale)) * 255.0 + 0.5) as u8);
-                [r, g, b, 255]
-            })
+            .flat_map(|&p| tone_map_srgba8(p, scale))
             .collect()
     }
 
@@ -796,6 +793,14 @@ pub fn write_atomically(
         let _ = std::fs::remove_file(&tmp);
         fail(e.to_string())
     })
+}
+
+/// One linear RGB value as the 8-bit sRGB RGBA pixel every PNG and display shows:
+/// scaled by `scale` (2^exposure), the ACES filmic fit, then sRGB encoding; alpha 255.
+#[inline]
+pub fn tone_map_srgba8(rgb: [f32; 3], scale: f32) -> [u8; 4] {
+    let [r, g, b] = rgb.map(|v| (linear_to_srgb(filmic(v * scale)) * 255.0 + 0.5) as u8);
+    [r, g, b, 255]
 }
 
 /// Narkowicz's fit of the ACES filmic curve, clamped to [0, 1]; NaN maps to 0.

@@ -16,9 +16,13 @@
 //! 5. `Accumulate` — [`accumulate`] into each camera's `Film`;
 //! 6. `Display` — [`filter_display`]: the discontinuity filter of cameras with a
 //!    `DiscontinuityFilter` (only when some camera has one), into a `FilteredImage`;
-//! 7. `Output` — empty in this schedule: where a program puts what reads a frame's
+//! 7. `Output` — [`embed::publish_frame_images`] for cameras with an
+//!    [`embed::FrameImage`], and where a program puts its own systems that read a frame's
 //!    results. The CLI writes its images after the schedule has run (with their
 //!    metadata, snapshots and checkpoints, on the progressive driver [`refine`]).
+//!
+//! A program with its own schedule installs the stages with [`embed::install`], choosing
+//! which optional stages it needs and whose threads render.
 //!
 //! Threads: all data-parallel work (tiles, BVH builds) runs on the rayon [`RenderPool`];
 //! bevy's task pool only runs the systems themselves, whose threads block while the pool
@@ -26,6 +30,7 @@
 
 pub mod animation;
 pub mod converge;
+pub mod embed;
 pub mod live;
 pub mod picking;
 mod progressive;
@@ -64,8 +69,9 @@ pub enum RenderSystems {
     Accumulate,
     /// Films are filtered for display.
     Display,
-    /// A frame's results are read: empty in [`frame_schedule`], for a program's own
-    /// systems (the CLI writes its images after the schedule).
+    /// A frame's results are read: [`embed::FrameImage`]s are refreshed, and a
+    /// program's own systems go here or after (the CLI writes its images after the
+    /// schedule).
     Output,
 }
 
@@ -227,6 +233,12 @@ pub fn init_render_world(
     threads: usize,
 ) -> Result<(), rayon::ThreadPoolBuildError> {
     world.insert_resource(RenderPool::new(threads)?);
+    init_resources(world);
+    Ok(())
+}
+
+/// Inserts the resources the stages read, keeping those already present.
+fn init_resources(world: &mut World) {
     world.init_resource::<GeometryLibrary>();
     world.init_resource::<TopLevel>();
     world.init_resource::<ShaderTable>();
@@ -240,58 +252,13 @@ pub fn init_render_world(
     world.init_resource::<TopLevelState>();
     world.init_resource::<RenderStats>();
     world.init_resource::<FrameCancel>();
-    Ok(())
 }
 
-/// The frame schedule: every stage with its run condition, on the multi-threaded
-/// executor.
+/// The frame schedule with every stage ([`embed::Stages::ALL`]), each with its run
+/// condition, on the multi-threaded executor.
 pub fn frame_schedule() -> Schedule {
     let mut schedule = Schedule::new(Frame);
     schedule.set_executor(MultiThreadedExecutor::new());
-    schedule.configure_sets(
-        (
-            RenderSystems::Animate,
-            RenderSystems::Prepare,
-            RenderSystems::Plan,
-            RenderSystems::Render,
-            RenderSystems::Accumulate,
-            RenderSystems::Display,
-            RenderSystems::Output,
-        )
-            .chain(),
-    );
-    schedule.add_systems((
-        animate
-            .run_if(any_with_component::<sylva_engine::sway::Sway>)
-            .in_set(RenderSystems::Animate),
-        (
-            rebase_world_origin,
-            rebuild_top_level.run_if(instances_changed),
-        )
-            .chain()
-            .in_set(RenderSystems::Prepare),
-        compile_shaders
-            .run_if(shaders_changed)
-            .in_set(RenderSystems::Prepare),
-        compile_lights
-            .run_if(lights_changed)
-            .in_set(RenderSystems::Prepare),
-        (
-            adaptive_transparency_lod.run_if(transparency_inputs_changed),
-            assign_light_subsets.run_if(light_subset_inputs_changed),
-        )
-            .chain()
-            .in_set(RenderSystems::Plan),
-        build_opacity_maps
-            .run_if(opacity_inputs_changed)
-            .in_set(RenderSystems::Plan),
-        render_tiles
-            .run_if(any_with_component::<sylva_engine::camera::Camera>)
-            .in_set(RenderSystems::Render),
-        accumulate.in_set(RenderSystems::Accumulate),
-        filter_display
-            .run_if(any_with_component::<sylva_engine::discontinuity::DiscontinuityFilter>)
-            .in_set(RenderSystems::Display),
-    ));
+    embed::add_render_systems(&mut schedule, embed::Stages::ALL);
     schedule
 }
