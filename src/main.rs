@@ -20,6 +20,8 @@ use cli::render::RenderArgs;
 ///   sylva render --scene my_ecosystem.toml --out mine.png
 ///   sylva render --gltf model.glb --camera 0 --out model.png
 ///   sylva animate --scene meadow --seconds 2 --fps 30 --out frames/frame_%04d.png
+///   sylva render --scene forest --frames 8 --profile forest.csv
+///   sylva profile forest.csv --out forest_profile.png
 ///   sylva info --scene paper
 ///   sylva view --scene forest
 #[derive(Parser, Debug)]
@@ -43,6 +45,9 @@ enum Command {
     /// and relMSE after every frame; writes error_vs_time.csv and error_vs_time.png and
     /// prints the time to reach relMSE 1e-2 and 1e-3 and the convergence slope.
     Converge(Box<ConvergeArgs>),
+    /// Plot a profile written with --profile: stage times stacked over the frames, and a
+    /// heat map of the last frame's tile render times.
+    Profile(cli::profile::ProfileArgs),
     /// Print the error of linear images (.exr or .hdr) against a reference: RMSE and
     /// relMSE (mean of (I−R)²/(R²+0.01) over pixels and channels).
     Compare(CompareArgs),
@@ -60,6 +65,7 @@ fn main() {
         Command::Animate(args) => cli::animate::run(*args),
         Command::Info(args) => cli::info::run(args),
         Command::Compare(args) => cli::compare::run(args),
+        Command::Profile(args) => cli::profile::run(args),
         Command::Converge(args) => cli::converge::run(*args),
         #[cfg(feature = "view")]
         Command::View(args) => cli::view::run(*args),

@@ -438,3 +438,44 @@ fn a_scene_that_fails_to_load_leaves_the_shown_one_and_a_good_one_replaces_it() 
     assert_eq!(changed_pixels(&before, &reopened), 0);
     std::fs::remove_dir_all(&dir).ok();
 }
+
+#[test]
+fn a_profiled_window_logs_every_shown_frame() {
+    let dir = temp_dir("profile");
+    let script = dir.join("walk.toml");
+    std::fs::write(&script, "[[step]]\nframes = 3\nquit = true\n").unwrap();
+    let csv = dir.join("view.csv");
+    let run = view_on_xvfb(&[
+        "--width",
+        "96",
+        "--height",
+        "72",
+        "--threads",
+        "2",
+        "--script",
+        script.to_str().unwrap(),
+        "--profile",
+        csv.to_str().unwrap(),
+    ]);
+    assert!(
+        run.status.success(),
+        "{}",
+        String::from_utf8_lossy(&run.stderr)
+    );
+    let stdout = String::from_utf8_lossy(&run.stdout);
+    assert!(stdout.contains("profile of"), "{stdout}");
+    let text = std::fs::read_to_string(&csv).unwrap();
+    let rows = text.lines().count() - 1;
+    assert!(rows >= 3, "at least the 3 frames waited for:\n{text}");
+    let header: Vec<&str> = text.lines().next().unwrap().split(',').collect();
+    let render = header.iter().position(|h| *h == "render_tiles_ms").unwrap();
+    for row in text.lines().skip(1) {
+        let value = row.split(',').nth(render).unwrap();
+        assert!(
+            value.parse::<f64>().unwrap() > 0.0,
+            "every shown frame rendered: {row}"
+        );
+    }
+    assert!(dir.join("view.tiles.csv").exists());
+    std::fs::remove_dir_all(&dir).ok();
+}

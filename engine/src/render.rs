@@ -872,19 +872,19 @@ pub fn render_frame(
     frame: u32,
     on_tile: &(dyn Fn(&Tile) + Sync),
 ) -> FrameBuffer {
-    render_frame_unless(scene, view, params, frame, on_tile, None)
+    render_frame_unless(scene, view, params, frame, &|tile, _| on_tile(tile), None)
         .expect("a frame without a cancel flag completes")
 }
 
 /// [`render_frame`] that gives up when `cancel` is set: tiles not yet started are
 /// skipped and `None` is returned (a window's input cancels a frame that would only show
-/// the old view).
+/// the old view). `on_tile` is also given the tile's render time (profiles).
 pub fn render_frame_unless(
     scene: &RenderScene,
     view: &CameraView,
     params: &RenderParams,
     frame: u32,
-    on_tile: &(dyn Fn(&Tile) + Sync),
+    on_tile: &(dyn Fn(&Tile, std::time::Duration) + Sync),
     cancel: Option<&std::sync::atomic::AtomicBool>,
 ) -> Option<FrameBuffer> {
     use std::sync::atomic::Ordering;
@@ -896,8 +896,9 @@ pub fn render_frame_unless(
             if cancelled() {
                 return None;
             }
+            let start = std::time::Instant::now();
             let result = render_tile(scene, view, params, tile, frame);
-            on_tile(&tile);
+            on_tile(&tile, start.elapsed());
             Some(result)
         })
         .collect();

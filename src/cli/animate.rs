@@ -2,6 +2,7 @@
 //! one image per 1/fps seconds, resumable after the last image written. The timing and
 //! the per-image refinement are `sylva_systems::animation::Sequence`.
 
+use super::profile::CliProfile;
 use super::*;
 use indicatif::{ProgressBar, ProgressStyle};
 use sylva::engine::discontinuity::FilteredImage;
@@ -59,6 +60,11 @@ pub(crate) struct AnimateArgs {
     /// Exposure in stops, applied before tone mapping (PNG only).
     #[arg(long, default_value_t = 0.0, allow_hyphen_values = true)]
     exposure: f32,
+    /// Write per frame the time of every stage and system and the counters that explain
+    /// it to FILE.csv (and the last frame's tile times to FILE.tiles.csv), and print a
+    /// summary table; plot it with `sylva profile`.
+    #[arg(long, value_name = "FILE.csv")]
+    profile: Option<PathBuf>,
     /// No progress bar or summary.
     #[arg(long, short)]
     quiet: bool,
@@ -220,6 +226,7 @@ pub(crate) fn run(args: AnimateArgs) -> Result<()> {
         ..StopAt::default()
     };
     let mut schedule = frame_schedule();
+    let mut profile = CliProfile::start(&mut world, args.profile.as_deref())?;
     let start = std::time::Instant::now();
     for index in first..images {
         let stopped = sequence.render_image(
@@ -228,7 +235,12 @@ pub(crate) fn run(args: AnimateArgs) -> Result<()> {
             spawned.camera,
             index,
             &stop,
-            |_, _| Flow::Continue,
+            |world, _| {
+                if let Some(profile) = &mut profile {
+                    profile.record(world);
+                }
+                Flow::Continue
+            },
         );
         if stopped == Stopped::Interrupted {
             bar.finish_and_clear();
@@ -236,6 +248,9 @@ pub(crate) fn run(args: AnimateArgs) -> Result<()> {
                 "interrupted: images 0 to {} are written; --resume continues with image {index}",
                 index.saturating_sub(1)
             );
+            if let Some(profile) = profile.take() {
+                profile.finish(true);
+            }
             std::process::exit(130);
         }
         let film = world
@@ -257,10 +272,14 @@ pub(crate) fn run(args: AnimateArgs) -> Result<()> {
         ]
         .map(|(k, v)| (k.to_string(), v))
         .into();
+        let writing = std::time::Instant::now();
         let shown = shown_film(film, world.get::<FilteredImage>(spawned.camera));
         shown.write_with(&pattern.path(index), args.exposure, &metadata)?;
         if args.preview.is_some() {
             preview_frames.push(shown.to_srgba8(args.exposure));
+        }
+        if let Some(profile) = &mut profile {
+            profile.add_write(writing.elapsed());
         }
         bar.inc(1);
     }
@@ -292,6 +311,9 @@ pub(crate) fn run(args: AnimateArgs) -> Result<()> {
             pattern.path(first).display(),
             pattern.path(images - 1).display(),
         );
+    }
+    if let Some(profile) = profile {
+        profile.finish(args.quiet);
     }
     Ok(())
 }

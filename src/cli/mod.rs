@@ -6,6 +6,7 @@ pub mod compare;
 pub mod converge;
 pub mod info;
 pub mod plot;
+pub mod profile;
 pub mod render;
 #[cfg(feature = "view")]
 pub mod view;

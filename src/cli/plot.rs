@@ -28,9 +28,9 @@ pub enum PlotError {
 }
 
 /// The font family name the plots use.
-const FONT: &str = "sans-serif";
+pub(crate) const FONT: &str = "sans-serif";
 
-fn register_font() {
+pub(crate) fn register_font() {
     static REGISTER: Once = Once::new();
     REGISTER.call_once(|| {
         // The bytes are a valid TrueType font shipped in the dejavu crate.
@@ -39,7 +39,7 @@ fn register_font() {
 }
 
 /// Distinct colours for up to eight curves (Okabe–Ito, readable by colour-blind viewers).
-const PALETTE: [RGBColor; 8] = [
+pub(crate) const PALETTE: [RGBColor; 8] = [
     RGBColor(0, 114, 178),
     RGBColor(213, 94, 0),
     RGBColor(0, 158, 115),

@@ -1,6 +1,7 @@
 //! `sylva render`: a scene's frames refined progressively into a PNG or EXR, with
 //! snapshots, checkpoints and the summary of what was traced.
 
+use super::profile::CliProfile;
 use super::*;
 use indicatif::{ProgressBar, ProgressStyle};
 use std::time::Instant;
@@ -123,6 +124,11 @@ pub(crate) struct RenderArgs {
     /// Write a Chrome trace (open in chrome://tracing or Perfetto) of every stage and tile.
     #[arg(long)]
     trace: Option<PathBuf>,
+    /// Write per frame the time of every stage and system and the counters that explain
+    /// it to FILE.csv (and the last frame's tile times to FILE.tiles.csv), and print a
+    /// summary table; plot it with `sylva profile`.
+    #[arg(long, value_name = "FILE.csv")]
+    profile: Option<PathBuf>,
     /// No progress bar or summary.
     #[arg(long, short)]
     quiet: bool,
@@ -266,6 +272,7 @@ pub(crate) fn run(args: RenderArgs) -> Result<()> {
         bail!("the checkpoint already holds {resumed_frames} frames; ask for more with --frames");
     }
 
+    let mut profile = CliProfile::start(&mut world, args.profile.as_deref())?;
     let bar = progress_bar(&args, width, target_frames.saturating_sub(resumed_frames));
     let tick = bar.clone();
     world.insert_resource(TileProgress(Some(Arc::new(move |_| tick.inc(1)))));
@@ -289,6 +296,9 @@ pub(crate) fn run(args: RenderArgs) -> Result<()> {
         spawned.camera,
         &stop,
         |world, progress| {
+            if let Some(profile) = &mut profile {
+                profile.record(world);
+            }
             let frames = progress.frames;
             if args.time.is_some() {
                 bar.set_message(format!(
@@ -303,8 +313,12 @@ pub(crate) fn run(args: RenderArgs) -> Result<()> {
                     .get::<Film>(spawned.camera)
                     .expect("cameras have films");
                 let metadata = image_metadata(&args, film, width, &quality);
+                let writing = Instant::now();
                 let written = shown_film(film, world.get::<FilteredImage>(spawned.camera))
                     .write_with(&snapshot_path(&args.out, frames), args.exposure, &metadata);
+                if let Some(profile) = &mut profile {
+                    profile.add_write(writing.elapsed());
+                }
                 if let Err(error) = written {
                     snapshot_failure = Some(error);
                     return Flow::Stop;
@@ -330,16 +344,23 @@ pub(crate) fn run(args: RenderArgs) -> Result<()> {
         .get::<Film>(spawned.camera)
         .ok_or_else(|| anyhow::anyhow!("the camera has no film"))?;
     let metadata = image_metadata(&args, film, width, &quality);
+    let writing = Instant::now();
     shown_film(film, world.get::<FilteredImage>(spawned.camera)).write_with(
         &args.out,
         args.exposure,
         &metadata,
     )?;
+    if let Some(profile) = &mut profile {
+        profile.add_write(writing.elapsed());
+    }
     if let Some(path) = &args.checkpoint {
         film.write_checkpoint(path, fingerprint)?;
     }
     if interrupted.load(Ordering::SeqCst) {
         eprintln!("wrote {}", args.out.display());
+        if let Some(profile) = profile.take() {
+            profile.finish(true);
+        }
         std::process::exit(130);
     }
     if film.rejected_samples() > 0 {
@@ -355,6 +376,9 @@ pub(crate) fn run(args: RenderArgs) -> Result<()> {
             blas_time,
         };
         println!("{}", summary(&args, width, spp, film, &world, &built, wall));
+    }
+    if let Some(profile) = profile {
+        profile.finish(args.quiet);
     }
     Ok(())
 }

@@ -4,13 +4,16 @@
 //! Only window glue lives here: the camera control, the scripts and the render thread
 //! are `sylva_systems::walkthrough` and `sylva_systems::live`.
 
+use super::profile::{finish_profile, open_profile};
 use super::*;
 use std::collections::HashSet;
 use std::num::NonZeroU32;
 use std::rc::Rc;
+use std::sync::{Mutex, PoisonError};
 use std::time::Instant;
 use sylva::scenes::editor;
 use sylva::systems::live::{LiveCommand, LiveRender, ShownImage};
+use sylva::systems::profile::{FrameProfiler, ProfileLog};
 use sylva::systems::walkthrough::{
     FlyCamera, FlyInput, ScriptRecorder, ScriptStep, WalkthroughScript, overview_pose,
 };
@@ -62,6 +65,11 @@ pub(crate) struct ViewArgs {
     /// Save every frame the window shows as DIR/frame_NNNNN.png (with its metadata).
     #[arg(long, value_name = "DIR")]
     frames_out: Option<PathBuf>,
+    /// Write per shown frame the time of every stage and system and the counters that
+    /// explain it to FILE.csv (and the last frame's tile times to FILE.tiles.csv), and
+    /// print a summary table at the end; plot it with `sylva profile`.
+    #[arg(long, value_name = "FILE.csv")]
+    profile: Option<PathBuf>,
 }
 
 /// Sent by the render thread when a frame is ready.
@@ -93,6 +101,10 @@ pub(crate) fn run(args: ViewArgs) -> Result<()> {
         std::fs::create_dir_all(dir)
             .map_err(|e| anyhow::anyhow!("{}: cannot create the directory: {e}", dir.display()))?;
     }
+    let profile = match &args.profile {
+        Some(path) => Some(Arc::new(Mutex::new(open_profile(path)?))),
+        None => None,
+    };
     if cfg!(target_os = "linux") && std::env::var_os("DISPLAY").is_none_or(|d| d.is_empty()) {
         bail!(
             "no display: `sylva view` opens an X11 window and DISPLAY is not set (run it in a \
@@ -114,6 +126,7 @@ pub(crate) fn run(args: ViewArgs) -> Result<()> {
         max_frames: args.max_frames,
         save: args.save.clone(),
         wake: proxy,
+        profile: profile.clone(),
     });
     let loaded = load_scene(&settings, &args.scene, (args.width, args.height))?;
     let font = ab_glyph::FontRef::try_from_slice(dejavu::sans::regular())
@@ -191,6 +204,10 @@ pub(crate) fn run(args: ViewArgs) -> Result<()> {
             walkthrough_summary(&app.label, &app.live.frame_log(), &script.finished)
         );
     }
+    if let (Some(profile), Some(path)) = (&profile, &args.profile) {
+        let mut log = profile.lock().unwrap_or_else(PoisonError::into_inner);
+        finish_profile(&mut log, path, false);
+    }
     Ok(())
 }
 
@@ -249,6 +266,8 @@ struct ViewSettings {
     save: Option<PathBuf>,
     /// Wakes the event loop when the render thread has a frame.
     wake: winit::event_loop::EventLoopProxy<FrameReady>,
+    /// `--profile`: every shown frame of every scene opened is added to it.
+    profile: Option<Arc<Mutex<ProfileLog>>>,
 }
 
 /// A scene loaded into a world with its render thread running.
@@ -314,10 +333,19 @@ fn load_scene(
         world.spawn(environment);
     }
     Quality::interactive().apply(&mut world, spawned.camera);
+    if settings.profile.is_some() {
+        world.insert_resource(FrameProfiler::enabled());
+    }
     let wake = settings.wake.clone();
-    let live = LiveRender::start(world, spawned.camera, settings.max_frames, move || {
-        let _ = wake.send_event(FrameReady);
-    })?;
+    let live = LiveRender::start_profiled(
+        world,
+        spawned.camera,
+        settings.max_frames,
+        settings.profile.clone(),
+        move || {
+            let _ = wake.send_event(FrameReady);
+        },
+    )?;
     let saving = Saving {
         source: match (&scene_args.gltf, scene_args.scene.as_str()) {
             (Some(_), _) => None,

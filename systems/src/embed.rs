@@ -19,6 +19,7 @@
 //! ));
 //! ```
 
+use crate::profile::{FrameProfiler, ProfiledSystem, mark_stage, profiling};
 use crate::systems::*;
 use crate::{RenderPool, RenderSystems, init_resources};
 use bevy_ecs::prelude::*;
@@ -166,6 +167,39 @@ pub fn add_render_systems(schedule: &mut Schedule, stages: Stages) {
             .run_if(any_with_component::<FrameImage>)
             .in_set(RenderSystems::Output),
     ));
+    // The profile's stage boundaries (they run only while a profiler is enabled).
+    schedule.add_systems((
+        mark_stage::<0>
+            .run_if(profiling)
+            .before(RenderSystems::Animate),
+        mark_stage::<1>
+            .run_if(profiling)
+            .after(RenderSystems::Animate)
+            .before(RenderSystems::Prepare),
+        mark_stage::<2>
+            .run_if(profiling)
+            .after(RenderSystems::Prepare)
+            .before(RenderSystems::Plan),
+        mark_stage::<3>
+            .run_if(profiling)
+            .after(RenderSystems::Plan)
+            .before(RenderSystems::Render),
+        mark_stage::<4>
+            .run_if(profiling)
+            .after(RenderSystems::Render)
+            .before(RenderSystems::Accumulate),
+        mark_stage::<5>
+            .run_if(profiling)
+            .after(RenderSystems::Accumulate)
+            .before(RenderSystems::Display),
+        mark_stage::<6>
+            .run_if(profiling)
+            .after(RenderSystems::Display)
+            .before(RenderSystems::Output),
+        mark_stage::<7>
+            .run_if(profiling)
+            .after(RenderSystems::Output),
+    ));
     if stages.animation {
         schedule.add_systems(
             animate
@@ -240,6 +274,14 @@ pub fn stage_name(system: &dyn System<In = (), Out = ()>) -> Option<&'static str
         (type_of(accumulate), "accumulate"),
         (type_of(filter_display), "filter_display"),
         (type_of(publish_frame_images), "publish_frame_images"),
+        (type_of(mark_stage::<0>), "mark_stage"),
+        (type_of(mark_stage::<1>), "mark_stage"),
+        (type_of(mark_stage::<2>), "mark_stage"),
+        (type_of(mark_stage::<3>), "mark_stage"),
+        (type_of(mark_stage::<4>), "mark_stage"),
+        (type_of(mark_stage::<5>), "mark_stage"),
+        (type_of(mark_stage::<6>), "mark_stage"),
+        (type_of(mark_stage::<7>), "mark_stage"),
     ];
     let id = system.system_type();
     stages.iter().find(|(t, _)| *t == id).map(|(_, name)| *name)
@@ -329,7 +371,9 @@ impl FrameImage {
 /// Refreshes the [`FrameImage`] of every camera whose film changed.
 pub fn publish_frame_images(
     mut cameras: Query<(&Film, Option<&FilteredImage>, &mut FrameImage), Changed<Film>>,
+    profiler: Res<FrameProfiler>,
 ) {
+    let _timer = profiler.time(ProfiledSystem::PublishFrameImages);
     let _span = tracing::info_span!("publish_frame_images").entered();
     for (film, filtered, mut image) in &mut cameras {
         image.update(film, filtered);

@@ -33,6 +33,7 @@ pub mod converge;
 pub mod embed;
 pub mod live;
 pub mod picking;
+pub mod profile;
 mod progressive;
 mod quality;
 mod systems;
@@ -252,6 +253,7 @@ fn init_resources(world: &mut World) {
     world.init_resource::<TopLevelState>();
     world.init_resource::<RenderStats>();
     world.init_resource::<FrameCancel>();
+    world.init_resource::<profile::FrameProfiler>();
 }
 
 /// The frame schedule with every stage ([`embed::Stages::ALL`]), each with its run

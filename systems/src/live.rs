@@ -6,6 +6,7 @@
 //! until the next command.
 
 use crate::picking::{MapPlant, Selected, map_plants};
+use crate::profile::{FrameProfiler, ProfileLog};
 use crate::progressive::{StopAt, refine};
 use crate::{FrameCancel, RenderStats, TopLevelState, frame_schedule, shown_film};
 use bevy_ecs::prelude::*;
@@ -134,6 +135,19 @@ impl LiveRender {
         max_frames: u32,
         frame_ready: impl Fn() + Send + 'static,
     ) -> std::io::Result<Self> {
+        Self::start_profiled(world, camera, max_frames, None, frame_ready)
+    }
+
+    /// [`start`](Self::start) that adds every shown frame to `profile` (its time to
+    /// make the shown image as the frame's writing); the world's
+    /// [`FrameProfiler`] must be enabled for stage times. Frames given up are left out.
+    pub fn start_profiled(
+        world: World,
+        camera: Entity,
+        max_frames: u32,
+        profile: Option<Arc<Mutex<ProfileLog>>>,
+        frame_ready: impl Fn() + Send + 'static,
+    ) -> std::io::Result<Self> {
         let (commands, inbox) = mpsc::channel();
         let latest = Arc::new(Mutex::new(None));
         let cancel = Arc::new(AtomicBool::new(false));
@@ -154,7 +168,7 @@ impl LiveRender {
                         camera,
                         max_frames.max(1),
                         (inbox, &flag),
-                        (&published, &log),
+                        (&published, &log, profile),
                         &frame_ready,
                     )
                 }));
@@ -263,13 +277,16 @@ fn apply(world: &mut World, camera: Entity, command: LiveCommand) -> bool {
     }
 }
 
+/// A profile the render thread adds its frames to.
+type SharedProfile = Option<Arc<Mutex<ProfileLog>>>;
+
 /// The render thread: commands, one frame, publish; asleep at `max_frames`.
 fn run(
     mut world: World,
     camera: Entity,
     max_frames: u32,
     (inbox, cancel): (Receiver<(u64, LiveCommand)>, &AtomicBool),
-    (published, log): (&Mutex<Option<ShownImage>>, &Mutex<FrameLog>),
+    (published, log, mut profile): (&Mutex<Option<ShownImage>>, &Mutex<FrameLog>, SharedProfile),
     frame_ready: impl Fn(),
 ) -> World {
     let mut schedule = frame_schedule();
@@ -309,8 +326,23 @@ fn run(
         );
         if progress.cancelled > 0 {
             log.lock().unwrap_or_else(PoisonError::into_inner).cancelled += 1;
+            // The given-up frame's times are not a frame's.
+            if let Some(profiler) = world.get_resource::<FrameProfiler>() {
+                profiler.take();
+            }
             continue;
         }
+        if let Some(shared) = &profile {
+            let recorded = shared
+                .lock()
+                .unwrap_or_else(PoisonError::into_inner)
+                .record(&world);
+            if let Err(error) = recorded {
+                tracing::warn!(%error, "the profile stops here");
+                profile = None;
+            }
+        }
+        let shown_start = std::time::Instant::now();
         let Some(film) = world.get::<Film>(camera) else {
             return world;
         };
@@ -340,6 +372,12 @@ fn run(
         image.selected = world.get_resource::<Selected>().and_then(|s| s.0);
         image.rays_per_second =
             stats.last_frame.rays() as f64 / stats.last_render.as_secs_f64().max(1e-9);
+        if let Some(shared) = &profile {
+            shared
+                .lock()
+                .unwrap_or_else(PoisonError::into_inner)
+                .add_write(shown_start.elapsed());
+        }
         *published.lock().unwrap_or_else(PoisonError::into_inner) = Some(image);
         frame_ready();
     }

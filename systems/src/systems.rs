@@ -1,5 +1,6 @@
 //! The systems of the frame schedule and their run conditions.
 
+use crate::profile::{FrameProfiler, ProfiledSystem};
 use crate::{
     BuildSettings, FrameCancel, RenderPool, RenderSeed, RenderStats, TileProgress, TopLevelState,
     WorldOrigin,
@@ -50,7 +51,9 @@ pub fn animate(
     wind: Option<Res<Wind>>,
     mut warned: Local<bool>,
     mut plants: Query<(&mut Sway, &RestPose, &mut Transform)>,
+    profiler: Res<FrameProfiler>,
 ) {
+    let _timer = profiler.time(ProfiledSystem::Animate);
     let _span = tracing::info_span!("animate").entered();
     let times = clock.advance();
     if times.is_empty() {
@@ -80,7 +83,9 @@ pub fn animate(
 pub fn rebase_world_origin(
     cameras: Query<&Transform, With<Camera>>,
     mut origin: ResMut<WorldOrigin>,
+    profiler: Res<FrameProfiler>,
 ) {
+    let _timer = profiler.time(ProfiledSystem::RebaseWorldOrigin);
     if let Some(camera) = cameras.iter().next() {
         origin.set_if_neq(WorldOrigin::snapped(camera.translation));
     }
@@ -104,6 +109,10 @@ pub fn instances_changed(
 /// the same plants only moved (same entities, same geometry, same library) and the
 /// refitted tree's SAH cost stays within [`BuildSettings::refit_limit`] of its cost when
 /// built; a full build otherwise.
+#[expect(
+    clippy::too_many_arguments,
+    reason = "a system's parameters are its data access"
+)]
 pub fn rebuild_top_level(
     pool: Res<RenderPool>,
     library: Res<GeometryLibrary>,
@@ -112,7 +121,9 @@ pub fn rebuild_top_level(
     plants: Query<(Entity, &Transform, &Instance), Without<Hidden>>,
     mut top_level: ResMut<TopLevel>,
     mut state: ResMut<TopLevelState>,
+    profiler: Res<FrameProfiler>,
 ) {
+    let _timer = profiler.time(ProfiledSystem::RebuildTopLevel);
     let _span = tracing::info_span!("rebuild_top_level").entered();
     let start = Instant::now();
     let (entities, descs): (Vec<Entity>, Vec<InstanceDesc>) = plants
@@ -207,12 +218,19 @@ pub fn build_opacity_maps(
     library: Res<GeometryLibrary>,
     shaders: Res<ShaderTable>,
     mut opacity: ResMut<OpacityMaps>,
+    profiler: Res<FrameProfiler>,
 ) {
+    let _timer = profiler.time(ProfiledSystem::BuildOpacityMaps);
     *opacity = pool.install(|| OpacityMaps::build(&library, &shaders));
 }
 
 /// Packs shader entities into the dense [`ShaderTable`].
-pub fn compile_shaders(shaders: Query<&Shader>, mut table: ResMut<ShaderTable>) {
+pub fn compile_shaders(
+    shaders: Query<&Shader>,
+    mut table: ResMut<ShaderTable>,
+    profiler: Res<FrameProfiler>,
+) {
+    let _timer = profiler.time(ProfiledSystem::CompileShaders);
     let _span = tracing::info_span!("compile_shaders").entered();
     let mut all: Vec<Shader> = shaders.iter().cloned().collect();
     all.sort_by_key(|s| s.id);
@@ -241,7 +259,9 @@ pub fn compile_lights(
     skies: Query<&SkyLight>,
     environments: Query<&EnvironmentLight>,
     mut lights: ResMut<LightSet>,
+    profiler: Res<FrameProfiler>,
 ) {
+    let _timer = profiler.time(ProfiledSystem::CompileLights);
     let _span = tracing::info_span!("compile_lights").entered();
     let mut directional = Vec::new();
     for light in &suns {
@@ -297,7 +317,9 @@ pub fn transparency_inputs_changed(
 pub fn adaptive_transparency_lod(
     shaders: Res<ShaderTable>,
     mut cameras: Query<(Option<&TransparencyCurve>, &mut FramePlan)>,
+    profiler: Res<FrameProfiler>,
 ) {
+    let _timer = profiler.time(ProfiledSystem::AdaptiveTransparencyLod);
     let _span = tracing::info_span!("adaptive_transparency_lod").entered();
     for (curve, mut plan) in &mut cameras {
         let transparency = curve.copied().filter(|_| shaders.has_alpha_masks());
@@ -326,7 +348,9 @@ pub fn assign_light_subsets(
     lights: Res<LightSet>,
     seed: Res<RenderSeed>,
     mut cameras: Query<(Option<&LightInterleave>, &mut FramePlan)>,
+    profiler: Res<FrameProfiler>,
 ) {
+    let _timer = profiler.time(ProfiledSystem::AssignLightSubsets);
     let _span = tracing::info_span!("assign_light_subsets").entered();
     let has_virtual_lights = lights
         .environment
@@ -371,7 +395,9 @@ pub fn render_tiles(
     mut cameras: Query<(Entity, RenderedCamera)>,
     mut stats: ResMut<RenderStats>,
     mut restart_owed: Local<HashSet<Entity>>,
+    profiler: Res<FrameProfiler>,
 ) {
+    let _timer = profiler.time(ProfiledSystem::RenderTiles);
     let _span = tracing::info_span!("render_tiles").entered();
     let start = Instant::now();
     let scene_changed = library.is_changed()
@@ -385,7 +411,8 @@ pub fn render_tiles(
         lights: &lights,
         opacity: &opacity,
     };
-    let on_tile = |tile: &Tile| {
+    let on_tile = |tile: &Tile, time: std::time::Duration| {
+        profiler.tile(*tile, time);
         if let Some(callback) = &progress.0 {
             callback(tile);
         }
@@ -442,7 +469,11 @@ pub fn render_tiles(
 }
 
 /// Adds each camera's new frame to its film (a frame with index 0 resets the film).
-pub fn accumulate(mut cameras: Query<(&FrameBuffer, &mut Film), Changed<FrameBuffer>>) {
+pub fn accumulate(
+    mut cameras: Query<(&FrameBuffer, &mut Film), Changed<FrameBuffer>>,
+    profiler: Res<FrameProfiler>,
+) {
+    let _timer = profiler.time(ProfiledSystem::Accumulate);
     for (frame, mut film) in &mut cameras {
         if frame.width > 0 {
             film.accumulate(frame);
@@ -458,7 +489,9 @@ pub fn filter_display(
     pool: Res<RenderPool>,
     cameras: Query<(Entity, &Film, &FrameBuffer, &DiscontinuityFilter), Changed<Film>>,
     mut stats: ResMut<RenderStats>,
+    profiler: Res<FrameProfiler>,
 ) {
+    let _timer = profiler.time(ProfiledSystem::FilterDisplay);
     let _span = tracing::info_span!("filter_display").entered();
     let start = Instant::now();
     let mut filtered = false;

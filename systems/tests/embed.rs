@@ -144,8 +144,16 @@ fn without_optional_stages_only_the_required_systems_are_installed_and_run() {
         "accumulate",
         "publish_frame_images",
     ]);
-    assert_eq!(installed, required);
-    assert_eq!(ran, required, "the first frame runs every installed system");
+    let mut with_marks = required.clone();
+    with_marks.insert("mark_stage".to_owned());
+    assert_eq!(
+        installed, with_marks,
+        "the profile's stage marks are installed too"
+    );
+    assert_eq!(
+        ran, required,
+        "the first frame runs every installed system but the marks"
+    );
     let (ran, _) = run_and_list(&mut world, &mut schedule);
     assert_eq!(
         ran,
@@ -288,4 +296,68 @@ fn a_programs_pool_renders_the_tiles_and_its_systems_order_against_the_stages() 
         "tiles ran on {threads:?}"
     );
     assert_eq!(world.resource::<RenderPool>().threads(), 2);
+}
+
+#[test]
+fn an_enabled_profiler_times_every_stage_system_and_tile_of_each_frame() {
+    use sylva_systems::profile::{FrameProfiler, ProfileLog, ProfiledSystem, TopLevelAction};
+    let mut world = World::new();
+    let mut schedule = Schedule::default();
+    let options = RenderOptions {
+        threads: 2,
+        ..Default::default()
+    };
+    install(&mut world, &mut schedule, &options).unwrap();
+    let (plants, _) = spawn_scene(&mut world);
+    world.insert_resource(FrameProfiler::enabled());
+    let mut log = ProfileLog::in_memory();
+    let mut walls = Vec::new();
+    for frame in 0..3 {
+        if frame == 2 {
+            world.get_mut::<Transform>(plants[1]).unwrap().translation.y += 0.1;
+        }
+        let start = std::time::Instant::now();
+        schedule.run(&mut world);
+        walls.push(start.elapsed());
+        log.record(&world).unwrap();
+    }
+    let rows = log.rows();
+    assert_eq!(rows.len(), 3);
+    assert_eq!(
+        rows.iter().map(|r| r.top_level).collect::<Vec<_>>(),
+        vec![
+            TopLevelAction::Rebuild,
+            TopLevelAction::Kept,
+            TopLevelAction::Refit
+        ]
+    );
+    for (row, wall) in rows.iter().zip(&walls) {
+        assert!(row.times.stages.iter().all(Option::is_some), "{row:?}");
+        assert!(row.times.schedule() <= *wall, "stages within the run");
+        let render = row.times.systems[ProfiledSystem::RenderTiles as usize].unwrap();
+        assert!(render <= row.times.stages[3].unwrap());
+        // 40×30 in 16-pixel tiles (the default size): 3 × 2 tiles, each timed.
+        assert_eq!(row.times.tiles.len(), 6);
+        let tiles: std::time::Duration = row.times.tiles.iter().map(|t| t.1).sum();
+        assert!(
+            tiles <= render * 2,
+            "two workers: tiles {tiles:?}, render {render:?}"
+        );
+        assert!(row.counters.closest_rays >= 40 * 30);
+    }
+    let rebuilt = ProfiledSystem::RebuildTopLevel as usize;
+    assert!(rows[0].times.systems[rebuilt].is_some());
+    assert!(
+        rows[1].times.systems[rebuilt].is_none(),
+        "a static frame does not rebuild"
+    );
+    let summary = log.summary();
+    for line in [
+        "render ",
+        "  render_tiles",
+        "frame ",
+        "1 rebuilds, 1 refits, 1 kept",
+    ] {
+        assert!(summary.contains(line), "{line:?} in\n{summary}");
+    }
 }
