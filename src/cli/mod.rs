@@ -123,17 +123,22 @@ fn init_tracing_filtered(
     let fmt = tracing_subscriber::fmt::layer()
         .with_writer(std::io::stderr)
         .with_filter(filter);
+    let registry = tracing_subscriber::registry().with(fmt);
+    // Built with the `tracy` feature, every span also goes to a Tracy profiler that
+    // connects while Sylva runs.
+    #[cfg(feature = "tracy")]
+    let registry = registry.with(tracing_tracy::TracyLayer::default());
     match trace {
         Some(path) => {
             let (chrome, guard) = tracing_chrome::ChromeLayerBuilder::new()
                 .file(path)
                 .include_args(true)
                 .build();
-            tracing_subscriber::registry().with(fmt).with(chrome).init();
+            registry.with(chrome).init();
             Some(guard)
         }
         None => {
-            tracing_subscriber::registry().with(fmt).init();
+            registry.init();
             None
         }
     }
