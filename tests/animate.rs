@@ -158,3 +158,57 @@ fn the_preview_is_an_animated_png_of_every_image_also_after_a_resume() {
     assert_eq!(frames(&preview), shown);
     std::fs::remove_dir_all(&dir).ok();
 }
+
+#[test]
+fn a_scene_files_camera_path_sets_the_length_and_moves_the_view() {
+    let dir = temp_dir("path");
+    let scene = dir.join("flight.toml");
+    std::fs::write(
+        &scene,
+        "preset = \"meadow\"\n\
+         [[camera.path]]\ntime = 0\neye = [0, 45]\ntarget = [0, 0]\n\
+         [[camera.path]]\ntime = 0.25\neye = [10, 30]\neye_height = 6\ntarget = [0, 0]\n",
+    )
+    .unwrap();
+    let run = Command::new(env!("CARGO_BIN_EXE_sylva"))
+        .args(["animate", "--scene"])
+        .arg(&scene)
+        .args([
+            "--fps",
+            "10",
+            "--width",
+            "32",
+            "--height",
+            "24",
+            "--preset",
+            "interactive",
+            "--wind",
+            "off",
+            "--quiet",
+            "--out",
+        ])
+        .arg(dir.join("f_%d.png"))
+        .output()
+        .unwrap();
+    assert!(
+        run.status.success(),
+        "{}",
+        String::from_utf8_lossy(&run.stderr)
+    );
+    // 0.25 s at 10 fps: images at 0, 0.1 and 0.2 s.
+    let written: Vec<Vec<u8>> = (0..3)
+        .map(|k| std::fs::read(dir.join(format!("f_{k}.png"))).unwrap())
+        .collect();
+    assert!(!dir.join("f_3.png").exists());
+    assert_ne!(written[0], written[1], "the camera moved (the wind is off)");
+    assert_ne!(written[1], written[2]);
+
+    let no_length = Command::new(env!("CARGO_BIN_EXE_sylva"))
+        .args(["animate", "--quiet", "--out"])
+        .arg(dir.join("g_%d.png"))
+        .output()
+        .unwrap();
+    assert!(!no_length.status.success());
+    assert!(String::from_utf8_lossy(&no_length.stderr).contains("give --seconds"));
+    std::fs::remove_dir_all(&dir).ok();
+}

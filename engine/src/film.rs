@@ -745,6 +745,8 @@ fn write_rgba8_frames(
         encoder.set_color(png::ColorType::Rgba);
         encoder.set_depth(png::BitDepth::Eight);
         if let Some(fps) = fps {
+            // A preview is written once and shared: worth a slower, smaller encoding.
+            encoder.set_compression(png::Compression::High);
             let count = u32::try_from(frames.len()).map_err(|e| e.to_string())?;
             encoder.set_animated(count, 0).map_err(|e| e.to_string())?;
             encoder

@@ -8,6 +8,7 @@
 
 pub mod bvh;
 pub mod camera;
+pub mod camera_path;
 pub mod components;
 pub mod discontinuity;
 pub mod environment;

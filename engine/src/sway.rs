@@ -243,6 +243,8 @@ pub struct AnimationClock {
     pub substeps: u64,
     /// Frame time not yet covered by a whole sub-step.
     pub carry: f64,
+    /// Sub-steps taken before the latest [`advance`](Self::advance).
+    pub latest_from: u64,
 }
 
 impl AnimationClock {
@@ -256,9 +258,17 @@ impl AnimationClock {
         let times = (0..count)
             .map(|i| (self.substeps + i) as f64 * SUBSTEP)
             .collect();
+        self.latest_from = self.substeps;
         self.substeps += count;
         self.time = self.substeps as f64 * SUBSTEP;
         times
+    }
+
+    /// The start times of the sub-steps the latest [`advance`](Self::advance) took.
+    pub fn latest_times(&self) -> Vec<f64> {
+        (self.latest_from..self.substeps)
+            .map(|i| i as f64 * SUBSTEP)
+            .collect()
     }
 }
 

@@ -16,6 +16,7 @@ use std::sync::Arc;
 use std::time::Instant;
 use sylva_engine::bvh::BuildParams;
 use sylva_engine::camera::Camera;
+use sylva_engine::camera_path::{CameraKey, CameraPath};
 use sylva_engine::components::Transform;
 use sylva_engine::environment::EnvironmentLight;
 use sylva_engine::geometry::{Geometry, GeometryLibrary};
@@ -101,6 +102,40 @@ impl SunSpec {
     }
 }
 
+/// One key frame of a camera flight, placed relative to the terrain as [`CameraSpec`].
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct CameraKeySpec {
+    /// Seconds from the start.
+    pub time: f64,
+    /// Eye `(x, z)` and height above the ground.
+    pub eye: Vec2,
+    /// Eye height above the ground.
+    pub eye_height: f32,
+    /// Where the camera looks: a point `(x, z)` and its height above the ground, or an
+    /// orientation.
+    pub aim: CameraAim,
+    /// Vertical field of view in degrees.
+    pub fov: f32,
+}
+
+/// Where a key frame's camera looks.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub enum CameraAim {
+    /// At a point `(x, z)`, this high above the ground.
+    Target(Vec2, f32),
+    /// With this orientation (looking along its −Z).
+    Rotation(glam::Quat),
+}
+
+/// A camera flight: key frames and how they are interpolated.
+#[derive(Clone, Debug, PartialEq)]
+pub struct CameraPathSpec {
+    /// Key frames, times increasing.
+    pub keys: Vec<CameraKeySpec>,
+    /// Linear or Catmull–Rom.
+    pub interpolation: sylva_engine::camera_path::PathInterpolation,
+}
+
 /// The camera, placed relative to the terrain surface.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct CameraSpec {
@@ -140,6 +175,8 @@ pub struct EcosystemSpec {
     /// The wind that sways the plants when the wind is on (`sylva animate`, the viewer's
     /// G); the engine's default wind when `None`.
     pub wind: Option<sylva_engine::sway::Wind>,
+    /// The camera's flight for `sylva animate`, if any.
+    pub camera_path: Option<CameraPathSpec>,
 }
 
 /// A plant of an explicit plant list: its species by name, its layer and its transform.
@@ -300,6 +337,7 @@ impl EcosystemSpec {
             ],
             plants: None,
             wind: None,
+            camera_path: None,
             clear_radius: 2.5,
             sun: Some(default_sun()),
             sky: Some(default_sky()),
@@ -406,6 +444,7 @@ impl EcosystemSpec {
             ],
             plants: None,
             wind: None,
+            camera_path: None,
             clear_radius: 2.0,
             sun: Some(default_sun()),
             sky: Some(default_sky()),
@@ -499,6 +538,7 @@ impl EcosystemSpec {
             ],
             plants: None,
             wind: None,
+            camera_path: None,
             clear_radius: 2.0,
             sun: Some(default_sun()),
             sky: Some(default_sky()),
@@ -760,6 +800,37 @@ pub fn build(spec: &EcosystemSpec, seed: u64) -> Result<SceneBuild, SceneError> 
         ground(spec.camera.target, spec.camera.target_height),
         Vec3::Y,
     );
+    let camera_path = match &spec.camera_path {
+        Some(path) => {
+            let keys = path
+                .keys
+                .iter()
+                .map(|k| {
+                    let position = ground(k.eye, k.eye_height);
+                    let rotation = match k.aim {
+                        CameraAim::Target(target, height) => {
+                            Transform::looking_at(position, ground(target, height), Vec3::Y)
+                                .rotation
+                        }
+                        CameraAim::Rotation(rotation) => rotation,
+                    };
+                    CameraKey {
+                        time: k.time,
+                        position,
+                        rotation,
+                        vertical_fov: k.fov.to_radians(),
+                    }
+                })
+                .collect();
+            Some(CameraPath::new(keys, path.interpolation).map_err(|source| {
+                SceneError::CameraPath {
+                    scene: spec.name.clone(),
+                    source,
+                }
+            })?)
+        }
+        None => None,
+    };
     Ok(SceneBuild {
         name: spec.name.clone(),
         library,
@@ -779,6 +850,7 @@ pub fn build(spec: &EcosystemSpec, seed: u64) -> Result<SceneBuild, SceneError> 
         plants,
         sun: spec.sun.map(|s| s.light()),
         wind: spec.wind,
+        camera_path,
         sky: match spec.sky {
             Some(SkySpec::Gradient(gradient)) => Some(gradient),
             _ => None,

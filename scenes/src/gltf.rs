@@ -1242,6 +1242,7 @@ impl GltfScene {
             layers: vec!["glTF nodes".into()],
             layer_spacing: vec![0.0],
             wind: None,
+            camera_path: None,
             terrain: None,
             height_field: None,
             shaders: self.shaders,

@@ -61,6 +61,14 @@ pub enum SceneError {
         /// The defect.
         source: MeshError,
     },
+    /// The camera path's key frames do not make a path.
+    #[error("scene '{scene}', camera path: {source}")]
+    CameraPath {
+        /// Scene name.
+        scene: String,
+        /// What is wrong.
+        source: sylva_engine::camera_path::CameraPathError,
+    },
     /// A species' model could not be loaded.
     #[error("scene '{scene}', species '{species}': {source}")]
     Species {
@@ -149,6 +157,9 @@ pub struct SceneBuild {
     pub sun: Option<DirectionalLight>,
     /// The scene's wind, for when the wind is turned on ([`SceneWind`]).
     pub wind: Option<sylva_engine::sway::Wind>,
+    /// The camera's flight, which `sylva animate` puts on the camera (`render` and
+    /// `view` use the scene's camera).
+    pub camera_path: Option<sylva_engine::camera_path::CameraPath>,
     /// The gradient sky, if any.
     pub sky: Option<SkyLight>,
     /// An environment light (the baked procedural sky, or a map), if any.

@@ -59,6 +59,12 @@
 //! target = [0.0, 0.0]
 //! target_height = 2.0
 //! fov = 55.0
+//! path_interpolation = "catmull_rom"   # optional, or "linear": how the path runs
+//!
+//! [[camera.path]]          # optional key frames of a flight for `sylva animate`
+//! time = 0.0               # seconds, increasing from key to key
+//! eye = [0.0, 45.0]        # as [camera]; eye_height, target_height, fov default to its
+//! target = [0.0, 0.0]      # or rotation = [x, y, z, w] (a unit quaternion)
 //!
 //! [[plant]]                # optional: every plant where it stands (what `sylva view`
 //! species = "tall grass"   # saves); the layers then give only the species
@@ -69,14 +75,15 @@
 //! ```
 
 use crate::ecosystem::{
-    CameraSpec, EcosystemSpec, LayerSpec, PRESETS, PlacedPlant, SkySpec, SpeciesSource,
-    SpeciesSpec, SunSpec,
+    CameraAim, CameraKeySpec, CameraPathSpec, CameraSpec, EcosystemSpec, LayerSpec, PRESETS,
+    PlacedPlant, SkySpec, SpeciesSource, SpeciesSpec, SunSpec,
 };
 use crate::species::{LeafShape, PlantKind};
 use glam::{Vec2, Vec3};
 use serde::Deserialize;
 use std::ops::Range;
 use std::path::{Path, PathBuf};
+use sylva_engine::camera_path::PathInterpolation;
 use sylva_engine::components::Transform;
 use sylva_engine::light::SkyLight;
 use sylva_engine::shading::srgb_to_linear;
@@ -198,10 +205,24 @@ struct SkyDoc {
 #[derive(Deserialize)]
 #[serde(deny_unknown_fields)]
 struct CameraDoc {
+    eye: Option<[f32; 2]>,
+    eye_height: Option<Spanned<f32>>,
+    target: Option<[f32; 2]>,
+    target_height: Option<Spanned<f32>>,
+    fov: Option<Spanned<f32>>,
+    path: Option<Vec<Spanned<CameraKeyDoc>>>,
+    path_interpolation: Option<Spanned<String>>,
+}
+
+#[derive(Deserialize)]
+#[serde(deny_unknown_fields)]
+struct CameraKeyDoc {
+    time: Spanned<f64>,
     eye: [f32; 2],
     eye_height: Option<Spanned<f32>>,
-    target: [f32; 2],
+    target: Option<[f32; 2]>,
     target_height: Option<Spanned<f32>>,
+    rotation: Option<[f32; 4]>,
     fov: Option<Spanned<f32>>,
 }
 
@@ -447,22 +468,64 @@ impl SceneFile {
                     Err(cx.error(None, key, format!("{v:?} is not finite")))
                 }
             };
-            spec.camera = CameraSpec {
-                eye: finite(c.eye, "camera.eye")?,
-                eye_height: match &c.eye_height {
-                    Some(v) => cx.check(v, "camera.eye_height", -1e4, 1e5)?,
-                    None => 1.7,
-                },
-                target: finite(c.target, "camera.target")?,
-                target_height: match &c.target_height {
-                    Some(v) => cx.check(v, "camera.target_height", -1e4, 1e5)?,
-                    None => 1.7,
-                },
-                fov: match &c.fov {
-                    Some(v) => cx.check(v, "camera.fov", 1.0, 170.0)?,
-                    None => 55.0,
-                },
+            let height = |v: &Option<Spanned<f32>>, key: &str, default: f32| match v {
+                Some(v) => cx.check(v, key, -1e4, 1e5),
+                None => Ok(default),
             };
+            let fov = |v: &Option<Spanned<f32>>, key: &str, default: f32| match v {
+                Some(v) => cx.check(v, key, 1.0, 170.0),
+                None => Ok(default),
+            };
+            let eye_height = height(&c.eye_height, "camera.eye_height", 1.7)?;
+            let target_height = height(&c.target_height, "camera.target_height", 1.7)?;
+            let camera_fov = fov(&c.fov, "camera.fov", 55.0)?;
+            let path = match &c.path {
+                Some(keys) => Some(camera_path(
+                    &cx,
+                    keys,
+                    &c.path_interpolation,
+                    (eye_height, target_height, camera_fov),
+                )?),
+                None => {
+                    if let Some(i) = &c.path_interpolation {
+                        return Err(cx.error(
+                            Some(i.span()),
+                            "camera.path_interpolation",
+                            "there is no [[camera.path]] to interpolate".into(),
+                        ));
+                    }
+                    None
+                }
+            };
+            // Without its own eye and target, the still camera is the path's first key.
+            let first_target = path.as_ref().and_then(|p| match p.keys[0].aim {
+                CameraAim::Target(target, height) => Some((p.keys[0], target, height)),
+                CameraAim::Rotation(_) => None,
+            });
+            spec.camera = match (c.eye, c.target, first_target) {
+                (Some(eye), Some(target), _) => CameraSpec {
+                    eye: finite(eye, "camera.eye")?,
+                    eye_height,
+                    target: finite(target, "camera.target")?,
+                    target_height,
+                    fov: camera_fov,
+                },
+                (None, None, Some((key, target, height))) => CameraSpec {
+                    eye: key.eye,
+                    eye_height: key.eye_height,
+                    target,
+                    target_height: height,
+                    fov: key.fov,
+                },
+                _ => {
+                    return Err(cx.error(
+                        None,
+                        "camera",
+                        "give `eye` and `target`, or a [[camera.path]] whose first key has a `target`".into(),
+                    ));
+                }
+            };
+            spec.camera_path = path;
         }
         if let Some(plants) = &doc.plant {
             let mut list = Vec::with_capacity(plants.len());
@@ -514,6 +577,103 @@ impl SceneFile {
             seed: doc.seed,
         })
     }
+}
+
+/// The `[[camera.path]]` key frames, checked by key: times increasing, a `target` or a
+/// `rotation` each; heights and field of view default to the camera's.
+fn camera_path(
+    cx: &Context,
+    keys: &[Spanned<CameraKeyDoc>],
+    interpolation: &Option<Spanned<String>>,
+    (eye_height, target_height, fov): (f32, f32, f32),
+) -> Result<CameraPathSpec, SceneFileError> {
+    let interpolation = match interpolation {
+        None => PathInterpolation::CatmullRom,
+        Some(name) => match name.get_ref().as_str() {
+            "catmull_rom" => PathInterpolation::CatmullRom,
+            "linear" => PathInterpolation::Linear,
+            other => {
+                return Err(cx.error(
+                    Some(name.span()),
+                    "camera.path_interpolation",
+                    format!("'{other}' is not catmull_rom or linear"),
+                ));
+            }
+        },
+    };
+    if keys.is_empty() {
+        return Err(cx.error(None, "camera.path", "needs at least one key frame".into()));
+    }
+    let mut out: Vec<CameraKeySpec> = Vec::with_capacity(keys.len());
+    for (i, spanned) in keys.iter().enumerate() {
+        let k = spanned.get_ref();
+        let key = |name: &str| format!("camera.path[{i}].{name}");
+        let time = cx.check(&k.time, &key("time"), 0.0, 1e6)?;
+        if let Some(previous) = out.last()
+            && time <= previous.time
+        {
+            return Err(cx.error(
+                Some(k.time.span()),
+                &key("time"),
+                format!(
+                    "{time} does not come after the key before it ({})",
+                    previous.time
+                ),
+            ));
+        }
+        let finite2 = |v: [f32; 2]| v.iter().all(|x| x.is_finite());
+        if !finite2(k.eye) {
+            return Err(cx.error(
+                Some(spanned.span()),
+                &key("eye"),
+                format!("{:?} is not finite", k.eye),
+            ));
+        }
+        let aim = match (k.target, k.rotation) {
+            (Some(target), None) if finite2(target) => {
+                let height = match &k.target_height {
+                    Some(v) => cx.check(v, &key("target_height"), -1e4, 1e5)?,
+                    None => target_height,
+                };
+                CameraAim::Target(Vec2::from(target), height)
+            }
+            (None, Some(r)) => {
+                let rotation = glam::Quat::from_array(r);
+                if !rotation.is_finite() || (rotation.length() - 1.0).abs() > 1e-3 {
+                    return Err(cx.error(
+                        Some(spanned.span()),
+                        &key("rotation"),
+                        format!("{r:?} is not a unit quaternion [x, y, z, w]"),
+                    ));
+                }
+                CameraAim::Rotation(rotation.normalize())
+            }
+            _ => {
+                return Err(cx.error(
+                    Some(spanned.span()),
+                    &format!("camera.path[{i}]"),
+                    "give either a finite `target` or a `rotation`".into(),
+                ));
+            }
+        };
+        out.push(CameraKeySpec {
+            time,
+            eye: Vec2::from(k.eye),
+            eye_height: match &k.eye_height {
+                Some(v) => cx.check(v, &key("eye_height"), -1e4, 1e5)?,
+                None => eye_height,
+            },
+            aim,
+            fov: match &k.fov {
+                Some(v) => cx.check(v, &key("fov"), 1.0, 170.0)?,
+                None => fov,
+            },
+        });
+    }
+    Ok(CameraPathSpec {
+        keys: out,
+        interpolation,
+    })
 }
 
 fn layer(cx: &Context, doc: &LayerDoc, i: usize) -> Result<LayerSpec, SceneFileError> {
@@ -764,6 +924,78 @@ target = [0, 0]
             }
         );
         assert_eq!(file.spec.camera.eye, Vec2::new(0.0, 8.0));
+    }
+
+    #[test]
+    fn a_camera_path_is_read_with_the_cameras_defaults_and_bad_keys_are_refused() {
+        let file = parse(
+            "preset = \"meadow\"\n[camera]\neye = [0, 10]\ntarget = [0, 0]\neye_height = 3\nfov = 40\npath_interpolation = \"linear\"\n\n[[camera.path]]\ntime = 0\neye = [0, 10]\ntarget = [0, 0]\n\n[[camera.path]]\ntime = 2.5\neye = [5, 5]\nrotation = [0, 0.38268343, 0, 0.9238795]\nfov = 60\n",
+        )
+        .unwrap();
+        let path = file.spec.camera_path.expect("a path");
+        assert_eq!(path.interpolation, PathInterpolation::Linear);
+        assert_eq!(path.keys.len(), 2);
+        assert_eq!(path.keys[0].eye_height, 3.0, "the camera's eye height");
+        assert_eq!(path.keys[0].fov, 40.0, "the camera's field of view");
+        assert_eq!(path.keys[0].aim, CameraAim::Target(Vec2::ZERO, 1.7));
+        assert_eq!(path.keys[1].fov, 60.0);
+        assert!(matches!(path.keys[1].aim, CameraAim::Rotation(_)));
+
+        // Without eye and target, the still camera is the first key.
+        let only_path = parse(
+            "preset = \"meadow\"\n[[camera.path]]\ntime = 0\neye = [3, 4]\ntarget = [1, 1]\n",
+        )
+        .unwrap();
+        assert_eq!(only_path.spec.camera.eye, Vec2::new(3.0, 4.0));
+        assert_eq!(only_path.spec.camera.target, Vec2::new(1.0, 1.0));
+        assert_eq!(
+            only_path.spec.camera_path.unwrap().interpolation,
+            PathInterpolation::CatmullRom
+        );
+
+        let key = |time: &str, aim: &str| {
+            format!("[[camera.path]]\ntime = {time}\neye = [0, 1]\n{aim}\n")
+        };
+        for (text, says) in [
+            (
+                format!(
+                    "{}{}",
+                    key("1", "target = [0, 0]"),
+                    key("1", "target = [1, 0]")
+                ),
+                "my.toml:6:8: camera.path[1].time: 1 does not come after",
+            ),
+            (
+                key("0", ""),
+                "camera.path[0]: give either a finite `target` or a `rotation`",
+            ),
+            (
+                key("0", "target = [0, 0]\nrotation = [0, 0, 0, 1]"),
+                "camera.path[0]: give either",
+            ),
+            (
+                key("0", "rotation = [0, 0, 0, 2]"),
+                "camera.path[0].rotation",
+            ),
+            (
+                key("-1", "target = [0, 0]"),
+                "camera.path[0].time: -1 is out of range",
+            ),
+            (
+                format!(
+                    "[camera]\npath_interpolation = \"cubic\"\n{}",
+                    key("0", "target = [0, 0]")
+                ),
+                "camera.path_interpolation: 'cubic' is not catmull_rom or linear",
+            ),
+            (
+                key("0", "rotation = [0, 0, 0, 1]"),
+                "camera: give `eye` and `target`",
+            ),
+        ] {
+            let error = parse(&text).unwrap_err().to_string();
+            assert!(error.contains(says), "{text}\n→ {error}");
+        }
     }
 
     #[test]

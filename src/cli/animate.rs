@@ -14,9 +14,9 @@ use sylva::systems::shown_film;
 pub(crate) struct AnimateArgs {
     #[command(flatten)]
     scene: SceneArgs,
-    /// Seconds of animation.
+    /// Seconds of animation [default: to the last key of the scene file's camera path].
     #[arg(long, value_parser = parse_seconds)]
-    seconds: f64,
+    seconds: Option<f64>,
     /// Images per second of animation.
     #[arg(long, default_value_t = 30, value_parser = clap::value_parser!(u32).range(1..=1000))]
     fps: u32,
@@ -150,7 +150,7 @@ pub(crate) fn run(args: AnimateArgs) -> Result<()> {
     }
     check_exposure(args.exposure)?;
     let mut world = World::new();
-    let (scene, width, environment) = build_framed(
+    let (mut scene, width, environment) = build_framed(
         &mut world,
         &args.scene,
         (args.env.as_deref(), args.lights),
@@ -165,9 +165,24 @@ pub(crate) fn run(args: AnimateArgs) -> Result<()> {
         samples_per_pixel: args.spp.unwrap_or(preset.samples_per_pixel),
         ..preset
     };
+    // The scene file's camera flight: the camera follows it from image 0.
+    let camera_path = scene.camera_path.take();
+    let seconds = match (args.seconds, &camera_path) {
+        (Some(seconds), _) => seconds,
+        (None, Some(path)) if path.keys()[path.keys().len() - 1].time > 0.0 => {
+            path.keys()[path.keys().len() - 1].time
+        }
+        (None, _) => bail!(
+            "give --seconds: how long the animation runs (the scene has no camera path to \
+             take it from)"
+        ),
+    };
     let spawned = spawn(&mut world, scene);
     if let Some(environment) = environment {
         world.spawn(environment);
+    }
+    if let Some(path) = camera_path {
+        world.entity_mut(spawned.camera).insert(path);
     }
     quality.apply(&mut world, spawned.camera);
     let sequence = Sequence {
@@ -178,7 +193,7 @@ pub(crate) fn run(args: AnimateArgs) -> Result<()> {
     if args.wind == Switch::On {
         editor::set_wind(&mut world, true, 1.0 / sequence.fps);
     }
-    let images = sequence.images(args.seconds);
+    let images = sequence.images(seconds);
     let first = if args.resume {
         (0..images)
             .find(|&k| !pattern.path(k).exists())

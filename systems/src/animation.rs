@@ -4,12 +4,16 @@
 //! resumed at any image, or rendered on any number of threads, is bit for bit the one
 //! rendered in one go.
 
-use crate::{Flow, Progress, RenderSeed, StopAt, Stopped, refine, systems::animate};
+use crate::embed::has_component;
+use crate::systems::{advance_animation_clock, animate, follow_camera_paths};
+use crate::{Flow, Progress, RenderSeed, StopAt, Stopped, refine};
 use bevy_ecs::prelude::*;
 use bevy_ecs::system::RunSystemOnce;
+use sylva_engine::camera_path::CameraPath;
 use sylva_engine::film::Film;
 use sylva_engine::sampling::mix64;
 use sylva_engine::sway::AnimationClock;
+use sylva_engine::sway::Sway;
 
 /// How a sequence is timed and refined.
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -34,16 +38,20 @@ impl Sequence {
     /// have.
     pub fn skip(&self, world: &mut World, from: u32, to: u32) {
         world.init_resource::<AnimationClock>();
-        // The schedule runs `animate` only while something sways; so does this.
-        let sways = world
-            .query_filtered::<(), With<sylva_engine::sway::Sway>>()
-            .iter(world)
-            .next()
-            .is_some();
-        for _ in (from..to).filter(|_| sways) {
+        // The schedule's animation stage, with its run conditions: the clock moves only
+        // while something moves with it.
+        let sways = has_component::<Sway>(world);
+        let paths = has_component::<CameraPath>(world);
+        for _ in (from..to).filter(|_| sways || paths) {
             world.resource_mut::<AnimationClock>().frame_seconds = 1.0 / self.fps;
-            // `animate` cannot fail to run: every parameter it takes exists.
-            let _ = world.run_system_once(animate);
+            // These cannot fail to run: every parameter they take exists.
+            let _ = world.run_system_once(advance_animation_clock);
+            if sways {
+                let _ = world.run_system_once(animate);
+            }
+        }
+        if paths {
+            let _ = world.run_system_once(follow_camera_paths);
         }
         world.resource_mut::<AnimationClock>().frame_seconds = 0.0;
     }

@@ -27,6 +27,7 @@ use bevy_ecs::system::System;
 use std::any::TypeId;
 use std::sync::Arc;
 use sylva_engine::camera::Camera;
+use sylva_engine::camera_path::CameraPath;
 use sylva_engine::discontinuity::{DiscontinuityFilter, FilteredImage};
 use sylva_engine::environment::EnvironmentLight;
 use sylva_engine::film::{Film, tone_map_srgba8};
@@ -40,7 +41,8 @@ use sylva_engine::sway::Sway;
 /// interleaving); without `display_filter` the shown image is the film's.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub struct Stages {
-    /// [`animate`]: `Sway` components in the `Wind`.
+    /// [`advance_animation_clock`], [`animate`] (`Sway` components in the `Wind`) and
+    /// [`follow_camera_paths`] (`CameraPath`s).
     pub animation: bool,
     /// [`build_opacity_maps`] and [`adaptive_transparency_lod`]: alpha-masked shaders.
     pub alpha_masks: bool,
@@ -78,7 +80,7 @@ impl Stages {
             .iter(world)
             .any(|s| s.texture.is_some() && s.alpha_cutoff.is_some());
         Stages {
-            animation: has_component::<Sway>(world),
+            animation: has_component::<Sway>(world) || has_component::<CameraPath>(world),
             alpha_masks,
             environment: has_component::<EnvironmentLight>(world),
             display_filter: has_component::<DiscontinuityFilter>(world),
@@ -92,7 +94,8 @@ impl Default for Stages {
     }
 }
 
-fn has_component<C: Component>(world: &mut World) -> bool {
+/// True when some entity of `world` has a `C`.
+pub(crate) fn has_component<C: Component>(world: &mut World) -> bool {
     world
         .query_filtered::<(), With<C>>()
         .iter(world)
@@ -202,8 +205,12 @@ pub fn add_render_systems(schedule: &mut Schedule, stages: Stages) {
     ));
     if stages.animation {
         schedule.add_systems(
-            animate
-                .run_if(any_with_component::<Sway>)
+            (
+                advance_animation_clock.run_if(animation_present),
+                animate.run_if(any_with_component::<Sway>),
+                follow_camera_paths.run_if(any_with_component::<CameraPath>),
+            )
+                .chain()
                 .in_set(RenderSystems::Animate),
         );
     }
@@ -259,7 +266,9 @@ pub fn stage_name(system: &dyn System<In = (), Out = ()>) -> Option<&'static str
         IntoSystem::into_system(s).system_type()
     }
     let stages = [
+        (type_of(advance_animation_clock), "advance_animation_clock"),
         (type_of(animate), "animate"),
+        (type_of(follow_camera_paths), "follow_camera_paths"),
         (type_of(rebase_world_origin), "rebase_world_origin"),
         (type_of(rebuild_top_level), "rebuild_top_level"),
         (type_of(compile_shaders), "compile_shaders"),

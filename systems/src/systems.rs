@@ -9,6 +9,7 @@ use bevy_ecs::prelude::*;
 use std::collections::HashSet;
 use std::time::Instant;
 use sylva_engine::camera::{Camera, CameraView};
+use sylva_engine::camera_path::CameraPath;
 use sylva_engine::components::{Hidden, Instance, Transform};
 use sylva_engine::discontinuity::{DiscontinuityFilter, FilteredImage, GuidedImage};
 use sylva_engine::environment::EnvironmentLight;
@@ -42,12 +43,43 @@ type RenderedCamera<'a> = (
     &'a mut FrameBuffer,
 );
 
-/// Advances the [`AnimationClock`] by its `frame_seconds` in whole sub-steps and sways
-/// every plant with a [`Sway`] in the [`Wind`] (none without a `Wind` resource): its
-/// `Transform` becomes its [`RestPose`] tilted about the base. A wind with NaN or ∞ is
-/// ignored with a warning.
+/// Advances the [`AnimationClock`] by its `frame_seconds` in whole sub-steps (which
+/// [`animate`] and [`follow_camera_paths`] then play).
+pub fn advance_animation_clock(mut clock: ResMut<AnimationClock>) {
+    clock.advance();
+}
+
+/// Run condition of [`advance_animation_clock`]: something moves with the clock (a
+/// swaying plant or a camera on a path); otherwise the clock stands still.
+pub fn animation_present(sways: Query<(), With<Sway>>, paths: Query<(), With<CameraPath>>) -> bool {
+    !sways.is_empty() || !paths.is_empty()
+}
+
+/// Puts every camera with a [`CameraPath`] where its path is at the clock's time
+/// (position, orientation and field of view; unchanged values are not written, so a
+/// camera at rest keeps accumulating).
+pub fn follow_camera_paths(
+    clock: Res<AnimationClock>,
+    mut cameras: Query<(&CameraPath, &mut Transform, &mut Camera)>,
+) {
+    for (path, mut transform, mut camera) in &mut cameras {
+        let (position, rotation, fov) = path.at(clock.time);
+        transform.set_if_neq(Transform {
+            translation: position,
+            rotation,
+            ..*transform
+        });
+        if camera.vertical_fov != fov {
+            camera.vertical_fov = fov;
+        }
+    }
+}
+
+/// Sways every plant with a [`Sway`] in the [`Wind`] (none without a `Wind` resource)
+/// over the sub-steps the clock took last: its `Transform` becomes its [`RestPose`]
+/// tilted about the base. A wind with NaN or ∞ is ignored with a warning.
 pub fn animate(
-    mut clock: ResMut<AnimationClock>,
+    clock: Res<AnimationClock>,
     wind: Option<Res<Wind>>,
     mut warned: Local<bool>,
     mut plants: Query<(&mut Sway, &RestPose, &mut Transform)>,
@@ -55,7 +87,7 @@ pub fn animate(
 ) {
     let _timer = profiler.time(ProfiledSystem::Animate);
     let _span = tracing::info_span!("animate").entered();
-    let times = clock.advance();
+    let times = clock.latest_times();
     if times.is_empty() {
         return;
     }

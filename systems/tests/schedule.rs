@@ -859,3 +859,85 @@ fn a_sequence_resumed_at_any_image_or_on_any_threads_gives_the_same_images() {
         60
     );
 }
+
+/// Images `from..to` at 10 fps of the test world with its camera flying a path (nothing
+/// sways), with the camera's pose at each.
+fn path_images(from: u32, to: u32) -> Vec<(Vec<[f32; 3]>, Transform, f32)> {
+    use sylva_engine::camera_path::{CameraKey, CameraPath, PathInterpolation};
+    use sylva_systems::animation::Sequence;
+    let mut w = test_world(2);
+    let key = |time: f64, eye: Vec3, fov: f32| CameraKey {
+        time,
+        position: eye,
+        rotation: Transform::looking_at(eye, Vec3::ZERO, Vec3::Y).rotation,
+        vertical_fov: fov,
+    };
+    let path = CameraPath::new(
+        vec![
+            key(0.0, Vec3::new(0.0, 3.0, 8.0), 0.8),
+            key(0.2, Vec3::new(3.0, 2.0, 7.0), 0.9),
+            key(0.5, Vec3::new(6.0, 4.0, 4.0), 0.7),
+        ],
+        PathInterpolation::CatmullRom,
+    )
+    .unwrap();
+    w.world.entity_mut(w.camera).insert(path);
+    let sequence = Sequence {
+        fps: 10.0,
+        frames_per_image: 1,
+        seed: 3,
+    };
+    sequence.skip(&mut w.world, 0, from.saturating_sub(1));
+    let camera = w.camera;
+    (from..to)
+        .map(|index| {
+            sequence.render_image(
+                &mut w.world,
+                &mut w.schedule,
+                camera,
+                index,
+                &StopAt::default(),
+                |_, _| Flow::Continue,
+            );
+            let pose = *w.world.get::<Transform>(camera).unwrap();
+            let fov = w.world.get::<Camera>(camera).unwrap().vertical_fov;
+            (pixels(&w), pose, fov)
+        })
+        .collect()
+}
+
+#[test]
+fn a_camera_on_a_path_is_where_the_path_is_at_each_images_time_also_after_a_resume() {
+    use sylva_engine::camera_path::{CameraKey, CameraPath, PathInterpolation};
+    let whole = path_images(0, 6);
+    // The same path as in `path_images`, evaluated at image k's time k / 10 s.
+    let key = |time: f64, eye: Vec3, fov: f32| CameraKey {
+        time,
+        position: eye,
+        rotation: Transform::looking_at(eye, Vec3::ZERO, Vec3::Y).rotation,
+        vertical_fov: fov,
+    };
+    let path = CameraPath::new(
+        vec![
+            key(0.0, Vec3::new(0.0, 3.0, 8.0), 0.8),
+            key(0.2, Vec3::new(3.0, 2.0, 7.0), 0.9),
+            key(0.5, Vec3::new(6.0, 4.0, 4.0), 0.7),
+        ],
+        PathInterpolation::CatmullRom,
+    )
+    .unwrap();
+    for (k, (_, pose, fov)) in whole.iter().enumerate() {
+        let (position, rotation, expected_fov) = path.at(k as f64 / 10.0);
+        assert!((pose.translation - position).length() < 1e-4, "image {k}");
+        assert!(pose.rotation.angle_between(rotation) < 1e-4, "image {k}");
+        assert_eq!(*fov, expected_fov, "image {k}");
+    }
+    assert_ne!(whole[0].0, whole[1].0, "the camera moved");
+    for from in [2, 5] {
+        let resumed = path_images(from, 6);
+        for (a, b) in resumed.iter().zip(&whole[from as usize..]) {
+            assert_eq!(a.0, b.0, "resumed at image {from}: the same image");
+            assert_eq!(a.1, b.1);
+        }
+    }
+}
