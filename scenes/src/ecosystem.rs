@@ -59,6 +59,53 @@ pub struct SpeciesSpec {
     pub source: SpeciesSource,
     /// Relative frequency within its layer.
     pub weight: f32,
+    /// How its plants sway, where it differs from its layer's.
+    pub sway: SwaySpec,
+}
+
+/// Factors on the damped spring a plant sways on, whose stiffness, damping and inertia
+/// otherwise follow from its height (1 keeps a value as the height gives it).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct SwayFactors {
+    /// Stiffness factor: > 1 bends less and swings faster.
+    pub stiffness: f32,
+    /// Damping factor: > 1 settles sooner.
+    pub damping: f32,
+    /// Inertia factor: > 1 swings slower.
+    pub inertia: f32,
+}
+
+impl Default for SwayFactors {
+    fn default() -> Self {
+        Self {
+            stiffness: 1.0,
+            damping: 1.0,
+            inertia: 1.0,
+        }
+    }
+}
+
+/// Sway factors given for a layer or a species, each optional: a species' value wins
+/// over its layer's, and a value neither gives is 1.
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
+pub struct SwaySpec {
+    /// Stiffness factor.
+    pub stiffness: Option<f32>,
+    /// Damping factor.
+    pub damping: Option<f32>,
+    /// Inertia factor.
+    pub inertia: Option<f32>,
+}
+
+impl SwaySpec {
+    /// These values, with `layer`'s where this one gives none, as factors.
+    pub fn over(self, layer: SwaySpec) -> SwayFactors {
+        SwayFactors {
+            stiffness: self.stiffness.or(layer.stiffness).unwrap_or(1.0),
+            damping: self.damping.or(layer.damping).unwrap_or(1.0),
+            inertia: self.inertia.or(layer.inertia).unwrap_or(1.0),
+        }
+    }
 }
 
 /// A vegetation layer: its species and how they are placed.
@@ -78,6 +125,8 @@ pub struct LayerSpec {
     pub clustering: f32,
     /// Rectangle `[x0, z0, x1, z1]`; the whole terrain when `None`.
     pub region: Option<[f32; 4]>,
+    /// How its plants sway (its species may say otherwise).
+    pub sway: SwaySpec,
 }
 
 /// The sun as a direction and an irradiance.
@@ -222,6 +271,7 @@ fn procedural(
                     seed: rng.next_u64(),
                 },
                 weight: 1.0,
+                sway: SwaySpec::default(),
             }
         })
         .collect()
@@ -236,6 +286,7 @@ fn layer(name: &str, species: Vec<SpeciesSpec>, count: u32) -> LayerSpec {
         min_spacing: None,
         clustering: 0.0,
         region: None,
+        sway: SwaySpec::default(),
     }
 }
 
@@ -769,6 +820,18 @@ pub fn build(spec: &EcosystemSpec, seed: u64) -> Result<SceneBuild, SceneError> 
         .collect();
     let (layer_plants, layer_spacing): (Vec<Vec<Plant>>, Vec<f32>) =
         layer_plants.into_iter().unzip();
+    // The sway factors that differ from the height's, per layer and species.
+    let mut sway_factors = Vec::new();
+    for (l, layer) in spec.layers.iter().enumerate() {
+        for species in &layer.species {
+            let factors = species.sway.over(layer.sway);
+            if let Some(index) = distinct.iter().position(|d| *d == species)
+                && factors != SwayFactors::default()
+            {
+                sway_factors.push((l as u32, ids[1 + index], factors));
+            }
+        }
+    }
     let plants: Vec<Plant> = match &spec.plants {
         None => layer_plants.into_iter().flatten().collect(),
         Some(list) => list
@@ -850,6 +913,7 @@ pub fn build(spec: &EcosystemSpec, seed: u64) -> Result<SceneBuild, SceneError> 
         plants,
         sun: spec.sun.map(|s| s.light()),
         wind: spec.wind,
+        sway_factors,
         camera_path,
         sky: match spec.sky {
             Some(SkySpec::Gradient(gradient)) => Some(gradient),

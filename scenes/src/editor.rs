@@ -5,7 +5,8 @@
 //! pixel operations (`select_at`, `insert_at`, …) are what a viewer's clicks and keys do:
 //! they pick through the camera and keep the history and the selection in the world.
 
-use crate::{LayerSpacing, SceneWind, move_plant, plant_at};
+use crate::ecosystem::SwayFactors;
+use crate::{LayerSpacing, SceneWind, SwayTuning, move_plant, plant_at};
 use bevy_ecs::prelude::*;
 use sylva_engine::components::{Instance, Layer, Transform};
 use sylva_engine::geometry::{GeometryId, GeometryLibrary};
@@ -343,28 +344,32 @@ pub fn set_wind(world: &mut World, on: bool, frame_seconds: f64) -> bool {
         world
             .get_resource_or_insert_with(AnimationClock::default)
             .frame_seconds = frame_seconds;
-        let plants: Vec<(Entity, GeometryId, f32)> = world
-            .query_filtered::<(Entity, &Instance, &Transform), (With<Layer>, Without<Sway>)>()
+        let plants: Vec<(Entity, GeometryId, Layer, f32)> = world
+            .query_filtered::<(Entity, &Instance, &Layer, &Transform), Without<Sway>>()
             .iter(world)
-            .map(|(e, i, t)| (e, i.geometry, t.scale.y))
+            .map(|(e, i, l, t)| (e, i.geometry, *l, t.scale.y))
             .collect();
         let library = world.get_resource::<GeometryLibrary>();
-        let heights: Vec<(Entity, f32)> = plants
+        let tuning = world.get_resource::<SwayTuning>();
+        let springs: Vec<(Entity, f32, SwayFactors)> = plants
             .into_iter()
-            .map(|(e, geometry, scale)| {
+            .map(|(e, geometry, layer, scale)| {
                 let top = library
                     .and_then(|l| l.get(geometry))
                     .map_or(1.0, |g| g.bounds().max.y);
-                (e, (top * scale).clamp(0.05, 100.0))
+                let factors = tuning
+                    .and_then(|t| t.0.get(&(layer.0, geometry)).copied())
+                    .unwrap_or_default();
+                (e, (top * scale).clamp(0.05, 100.0), factors)
             })
             .collect();
-        for (plant, height) in heights {
+        for (plant, height, factors) in springs {
             let rest = *world
                 .get::<Transform>(plant)
                 .expect("queried with a transform");
             world
                 .entity_mut(plant)
-                .insert((sway_for_height(height), RestPose(rest)));
+                .insert((sway_for_height(height, factors), RestPose(rest)));
         }
         let wind = world
             .get_resource::<SceneWind>()
@@ -390,12 +395,17 @@ pub fn set_wind(world: &mut World, on: bool, frame_seconds: f64) -> bool {
 /// the height and stiffness with its square, so grass sways at about 1 Hz and a 15 m
 /// tree at about 0.2 Hz; damping at a tenth of critical; wind torque from a drag area
 /// growing with the square of the height.
-fn sway_for_height(height: f32) -> Sway {
+fn sway_for_height(height: f32, factors: SwayFactors) -> Sway {
     let h = f64::from(height);
     let (stiffness, inertia) = (40.0 * h * h, 2.0 * h * h * h);
     let damping = 0.2 * (stiffness * inertia).sqrt();
-    Sway::new(stiffness, damping, inertia, 0.05 * h * h)
-        .expect("positive finite parameters for a height in 0.05 ..= 100 m")
+    Sway::new(
+        stiffness * f64::from(factors.stiffness),
+        damping * f64::from(factors.damping),
+        inertia * f64::from(factors.inertia),
+        0.05 * h * h,
+    )
+    .expect("positive finite parameters for a height in 0.05 ..= 100 m and factors in 0.01 ..= 100")
 }
 
 /// Where a scene came from: what a saved ecosystem starts from.
@@ -797,6 +807,55 @@ mod tests {
         // ... and layer 0 has no rule.
         select(&mut world, Some(plants[0]));
         assert!(insert_at_ground(&mut world, (0.1, 1.0)).is_some());
+    }
+
+    #[test]
+    fn a_scene_files_sway_factors_scale_the_springs_of_their_layer_and_species() {
+        let dir = std::env::temp_dir().join(format!("sylva-sway-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        let scene = |grass_sway: &str, species_sway: &str| {
+            let path = dir.join("sway.toml");
+            std::fs::write(
+                &path,
+                format!(
+                    "[terrain]\nsize = 20.0\ncells = 8\n\n[[layer]]\nname = \"grass\"\ncount = 6\n{grass_sway}\n\n[[layer.species]]\nname = \"g\"\nkind = \"grass\"\nheight = 0.5\ntriangles = 60\n{species_sway}\n\n[[layer]]\nname = \"shrubs\"\ncount = 3\n\n[[layer.species]]\nname = \"s\"\nkind = \"low_shrub\"\nheight = 1.0\ntriangles = 80\n"
+                ),
+            )
+            .unwrap();
+            let mut world = World::new();
+            let spawned = crate::spawn(
+                &mut world,
+                crate::build_scene(path.to_str().unwrap(), 3).unwrap(),
+            );
+            set_wind(&mut world, true, 0.1);
+            spawned
+                .plants
+                .iter()
+                .map(|&p| {
+                    let s = world.get::<Sway>(p).unwrap();
+                    let layer = world.get::<Layer>(p).unwrap().0;
+                    (layer, s.stiffness, s.damping, s.inertia)
+                })
+                .collect::<Vec<_>>()
+        };
+        let plain = scene("", "");
+        let tuned = scene(
+            "sway = { stiffness = 4.0, damping = 2.0 }",
+            "sway = { damping = 3.0 }",
+        );
+        assert_eq!(plain.len(), tuned.len());
+        for (p, t) in plain.iter().zip(&tuned) {
+            let ratio = |a: f64, b: f64| b / a;
+            let (stiffness, damping) = if p.0 == 0 { (4.0, 3.0) } else { (1.0, 1.0) };
+            assert!((ratio(p.1, t.1) - stiffness).abs() < 1e-9, "{p:?} {t:?}");
+            assert!(
+                (ratio(p.2, t.2) - damping).abs() < 1e-9,
+                "the species' damping wins"
+            );
+            assert_eq!(p.3, t.3, "inertia as the height gives it");
+        }
+        assert!(tuned.iter().any(|t| t.0 == 0) && tuned.iter().any(|t| t.0 == 1));
+        std::fs::remove_dir_all(&dir).ok();
     }
 
     #[test]

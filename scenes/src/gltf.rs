@@ -1243,6 +1243,7 @@ impl GltfScene {
             layer_spacing: vec![0.0],
             wind: None,
             camera_path: None,
+            sway_factors: Vec::new(),
             terrain: None,
             height_field: None,
             shaders: self.shaders,

@@ -121,6 +121,11 @@ pub struct Plant {
 #[derive(Clone, Debug, Default, Resource)]
 pub struct LayerSpacing(pub Vec<f32>);
 
+/// The sway factors a scene gives per `(layer, species geometry)`, for when the wind is
+/// turned on (`editor::set_wind`); plants not listed sway as their height gives.
+#[derive(Clone, Debug, Default, Resource)]
+pub struct SwayTuning(pub std::collections::HashMap<(u32, GeometryId), ecosystem::SwayFactors>);
+
 /// The wind a scene file describes: what turning the wind on blows (`editor::set_wind`),
 /// a world resource while the wind is off too.
 #[derive(Clone, Copy, Debug, Resource)]
@@ -157,6 +162,9 @@ pub struct SceneBuild {
     pub sun: Option<DirectionalLight>,
     /// The scene's wind, for when the wind is turned on ([`SceneWind`]).
     pub wind: Option<sylva_engine::sway::Wind>,
+    /// Sway factors per `(layer, species geometry)` where they differ from those the
+    /// plants' heights give ([`SwayTuning`]).
+    pub sway_factors: Vec<(u32, GeometryId, ecosystem::SwayFactors)>,
     /// The camera's flight, which `sylva animate` puts on the camera (`render` and
     /// `view` use the scene's camera).
     pub camera_path: Option<sylva_engine::camera_path::CameraPath>,
@@ -260,6 +268,13 @@ pub fn spawn(world: &mut World, scene: SceneBuild) -> SpawnedScene {
     if let Some(wind) = scene.wind {
         world.insert_resource(SceneWind(wind));
     }
+    world.insert_resource(SwayTuning(
+        scene
+            .sway_factors
+            .into_iter()
+            .map(|(layer, geometry, factors)| ((layer, geometry), factors))
+            .collect(),
+    ));
     if let Some(field) = scene.height_field {
         world.insert_resource(Terrain(field));
     }

@@ -21,6 +21,8 @@
 //! min_spacing = 0.5        # optional
 //! clustering = 0.3         # 0 … 1
 //! region = [-40, -40, 40, 40]
+//! sway = { stiffness = 2.0, damping = 1.5, inertia = 1.0 }  # optional factors on the
+//!                          # spring each plant's height gives (also per species)
 //!
 //! [[layer.species]]
 //! name = "tall grass"
@@ -76,7 +78,7 @@
 
 use crate::ecosystem::{
     CameraAim, CameraKeySpec, CameraPathSpec, CameraSpec, EcosystemSpec, LayerSpec, PRESETS,
-    PlacedPlant, SkySpec, SpeciesSource, SpeciesSpec, SunSpec,
+    PlacedPlant, SkySpec, SpeciesSource, SpeciesSpec, SunSpec, SwaySpec,
 };
 use crate::species::{LeafShape, PlantKind};
 use glam::{Vec2, Vec3};
@@ -168,7 +170,16 @@ struct LayerDoc {
     min_spacing: Option<Spanned<f32>>,
     clustering: Option<Spanned<f32>>,
     region: Option<Spanned<[f32; 4]>>,
+    sway: Option<SwayDoc>,
     species: Spanned<Vec<SpeciesDoc>>,
+}
+
+#[derive(Deserialize)]
+#[serde(deny_unknown_fields)]
+struct SwayDoc {
+    stiffness: Option<Spanned<f32>>,
+    damping: Option<Spanned<f32>>,
+    inertia: Option<Spanned<f32>>,
 }
 
 #[derive(Deserialize)]
@@ -183,6 +194,7 @@ struct SpeciesDoc {
     seed: Option<u64>,
     weight: Option<Spanned<f32>>,
     gltf: Option<Spanned<String>>,
+    sway: Option<SwayDoc>,
 }
 
 #[derive(Deserialize)]
@@ -738,11 +750,31 @@ fn layer(cx: &Context, doc: &LayerDoc, i: usize) -> Result<LayerSpec, SceneFileE
             .transpose()?
             .unwrap_or(0.0),
         region,
+        sway: sway(cx, &doc.sway, &key("sway"))?,
+    })
+}
+
+/// A `sway` table's factors, each in 0.01 … 100.
+fn sway(cx: &Context, doc: &Option<SwayDoc>, key: &str) -> Result<SwaySpec, SceneFileError> {
+    let Some(doc) = doc else {
+        return Ok(SwaySpec::default());
+    };
+    let factor = |value: &Option<Spanned<f32>>, name: &str| {
+        value
+            .as_ref()
+            .map(|v| cx.check(v, &format!("{key}.{name}"), 0.01, 100.0))
+            .transpose()
+    };
+    Ok(SwaySpec {
+        stiffness: factor(&doc.stiffness, "stiffness")?,
+        damping: factor(&doc.damping, "damping")?,
+        inertia: factor(&doc.inertia, "inertia")?,
     })
 }
 
 fn species(cx: &Context, doc: &SpeciesDoc, key: &str) -> Result<SpeciesSpec, SceneFileError> {
     let k = |f: &str| format!("{key}.{f}");
+    let sway = sway(cx, &doc.sway, &k("sway"))?;
     let weight = doc
         .weight
         .as_ref()
@@ -765,6 +797,7 @@ fn species(cx: &Context, doc: &SpeciesDoc, key: &str) -> Result<SpeciesSpec, Sce
                 path: base.join(file.get_ref()),
             },
             weight,
+            sway,
         });
     }
     let Some(kind_name) = &doc.kind else {
@@ -839,6 +872,7 @@ fn species(cx: &Context, doc: &SpeciesDoc, key: &str) -> Result<SpeciesSpec, Sce
             }),
         },
         weight,
+        sway,
     })
 }
 
@@ -995,6 +1029,30 @@ target = [0, 0]
         ] {
             let error = parse(&text).unwrap_err().to_string();
             assert!(error.contains(says), "{text}\n→ {error}");
+        }
+    }
+
+    #[test]
+    fn sway_factors_are_read_per_layer_and_species_and_checked_by_key() {
+        let layer = "[[layer]]\nname = \"a\"\ncount = 3\nsway = { stiffness = 2.5 }\n[[layer.species]]\nname = \"g\"\nkind = \"grass\"\n";
+        let file = parse(&format!("{layer}sway = {{ inertia = 0.5 }}\n")).unwrap();
+        let spec = &file.spec.layers[0];
+        assert_eq!(spec.sway.stiffness, Some(2.5));
+        assert_eq!(spec.species[0].sway.inertia, Some(0.5));
+        let factors = spec.species[0].sway.over(spec.sway);
+        assert_eq!(
+            (factors.stiffness, factors.damping, factors.inertia),
+            (2.5, 1.0, 0.5)
+        );
+        for (bad, says) in [
+            (
+                "sway = { damping = 0 }",
+                "layer[0].species[0].sway.damping: 0 is out of range",
+            ),
+            ("sway = { springiness = 2 }", "springiness"),
+        ] {
+            let error = parse(&format!("{layer}{bad}\n")).unwrap_err().to_string();
+            assert!(error.contains(says), "{bad}: {error}");
         }
     }
 
