@@ -53,28 +53,10 @@ fn a_profiled_render_logs_every_frame_and_renders_the_same_image() {
     let dir = temp_dir("render");
     let csv = dir.join("run.csv");
     let plain = ok(&render(&dir.join("plain.exr"), &[]));
-    let mut command = Command::new(env!("CARGO_BIN_EXE_sylva"));
-    command.args([
-        "render",
-        "--width",
-        "64",
-        "--height",
-        "48",
-        "--frames",
-        "3",
-        "--preset",
-        "interactive",
-        "--threads",
-        "2",
-        "--profile",
-    ]);
-    let profiled = command
-        .arg(&csv)
-        .arg("--out")
-        .arg(dir.join("profiled.exr"))
-        .output()
-        .unwrap();
-    let stdout = ok(&profiled);
+    let stdout = ok(&render(
+        &dir.join("profiled.exr"),
+        &["--profile", csv.to_str().unwrap()],
+    ));
     assert!(!plain.contains("profile of"));
     for line in [
         "profile of 3 frames",

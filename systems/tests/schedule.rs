@@ -860,19 +860,16 @@ fn a_sequence_resumed_at_any_image_or_on_any_threads_gives_the_same_images() {
     );
 }
 
-/// Images `from..to` at 10 fps of the test world with its camera flying a path (nothing
-/// sways), with the camera's pose at each.
-fn path_images(from: u32, to: u32) -> Vec<(Vec<[f32; 3]>, Transform, f32)> {
+/// The camera path of the path tests: three keys over 0.5 s, looking at the origin.
+fn test_camera_path() -> sylva_engine::camera_path::CameraPath {
     use sylva_engine::camera_path::{CameraKey, CameraPath, PathInterpolation};
-    use sylva_systems::animation::Sequence;
-    let mut w = test_world(2);
     let key = |time: f64, eye: Vec3, fov: f32| CameraKey {
         time,
         position: eye,
         rotation: Transform::looking_at(eye, Vec3::ZERO, Vec3::Y).rotation,
         vertical_fov: fov,
     };
-    let path = CameraPath::new(
+    CameraPath::new(
         vec![
             key(0.0, Vec3::new(0.0, 3.0, 8.0), 0.8),
             key(0.2, Vec3::new(3.0, 2.0, 7.0), 0.9),
@@ -880,8 +877,15 @@ fn path_images(from: u32, to: u32) -> Vec<(Vec<[f32; 3]>, Transform, f32)> {
         ],
         PathInterpolation::CatmullRom,
     )
-    .unwrap();
-    w.world.entity_mut(w.camera).insert(path);
+    .unwrap()
+}
+
+/// Images `from..to` at 10 fps of the test world with its camera flying a path (nothing
+/// sways), with the camera's pose at each.
+fn path_images(from: u32, to: u32) -> Vec<(Vec<[f32; 3]>, Transform, f32)> {
+    use sylva_systems::animation::Sequence;
+    let mut w = test_world(2);
+    w.world.entity_mut(w.camera).insert(test_camera_path());
     let sequence = Sequence {
         fps: 10.0,
         frames_per_image: 1,
@@ -908,24 +912,9 @@ fn path_images(from: u32, to: u32) -> Vec<(Vec<[f32; 3]>, Transform, f32)> {
 
 #[test]
 fn a_camera_on_a_path_is_where_the_path_is_at_each_images_time_also_after_a_resume() {
-    use sylva_engine::camera_path::{CameraKey, CameraPath, PathInterpolation};
     let whole = path_images(0, 6);
-    // The same path as in `path_images`, evaluated at image k's time k / 10 s.
-    let key = |time: f64, eye: Vec3, fov: f32| CameraKey {
-        time,
-        position: eye,
-        rotation: Transform::looking_at(eye, Vec3::ZERO, Vec3::Y).rotation,
-        vertical_fov: fov,
-    };
-    let path = CameraPath::new(
-        vec![
-            key(0.0, Vec3::new(0.0, 3.0, 8.0), 0.8),
-            key(0.2, Vec3::new(3.0, 2.0, 7.0), 0.9),
-            key(0.5, Vec3::new(6.0, 4.0, 4.0), 0.7),
-        ],
-        PathInterpolation::CatmullRom,
-    )
-    .unwrap();
+    // The path evaluated at image k's time k / 10 s.
+    let path = test_camera_path();
     for (k, (_, pose, fov)) in whole.iter().enumerate() {
         let (position, rotation, expected_fov) = path.at(k as f64 / 10.0);
         assert!((pose.translation - position).length() < 1e-4, "image {k}");
