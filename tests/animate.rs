@@ -212,3 +212,51 @@ fn a_scene_files_camera_path_sets_the_length_and_moves_the_view() {
     assert!(String::from_utf8_lossy(&no_length.stderr).contains("give --seconds"));
     std::fs::remove_dir_all(&dir).ok();
 }
+
+#[test]
+fn a_gltf_animation_plays_for_its_length_the_same_on_any_threads() {
+    let cube = Path::new(env!("CARGO_MANIFEST_DIR"))
+        .join("tests/data/gltf/AnimatedCube/glTF/AnimatedCube.gltf");
+    let run = |dir: &Path, threads: &str| {
+        let output = Command::new(env!("CARGO_BIN_EXE_sylva"))
+            .args(["animate", "--gltf"])
+            .arg(&cube)
+            .args([
+                "--fps",
+                "4",
+                "--width",
+                "48",
+                "--height",
+                "36",
+                "--preset",
+                "interactive",
+                "--wind",
+                "off",
+                "--quiet",
+                "--threads",
+                threads,
+                "--out",
+            ])
+            .arg(dir.join("f_%d.exr"))
+            .output()
+            .unwrap();
+        assert!(
+            output.status.success(),
+            "{}",
+            String::from_utf8_lossy(&output.stderr)
+        );
+        let mut images = Vec::new();
+        while let Ok(bytes) = std::fs::read(dir.join(format!("f_{}.exr", images.len()))) {
+            images.push(bytes);
+        }
+        images
+    };
+    let (one, two) = (temp_dir("cube1"), temp_dir("cube2"));
+    let images = run(&one, "1");
+    // No --seconds: the file's animation decides (its keys end at 2 s: 8 images at 4 fps).
+    assert_eq!(images.len(), 8);
+    assert_ne!(images[0], images[1], "the cube turns");
+    assert_eq!(run(&two, "2"), images, "1 and 2 threads");
+    std::fs::remove_dir_all(&one).ok();
+    std::fs::remove_dir_all(&two).ok();
+}

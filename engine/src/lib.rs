@@ -20,6 +20,7 @@ pub mod light;
 pub mod math;
 pub mod mesh;
 pub mod metrics;
+pub mod node_animation;
 pub mod opacity;
 pub mod render;
 pub mod sampling;

@@ -913,6 +913,7 @@ pub fn build(spec: &EcosystemSpec, seed: u64) -> Result<SceneBuild, SceneError> 
         plants,
         sun: spec.sun.map(|s| s.light()),
         wind: spec.wind,
+        node_animation: None,
         sway_factors,
         camera_path,
         sky: match spec.sky {

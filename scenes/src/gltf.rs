@@ -31,6 +31,7 @@ use sylva_engine::geometry::{Geometry, GeometryLibrary};
 use sylva_engine::light::{DirectionalLight, SkyLight};
 use sylva_engine::math::Aabb;
 use sylva_engine::mesh::TriangleMesh;
+use sylva_engine::node_animation::{Channel, Interpolation, NodeAnimation, NodeTrs, Property};
 use sylva_engine::shading::{
     Emission, Shader, ShaderId, Texture, Transmission, UvTransform, WrapMode,
 };
@@ -69,6 +70,10 @@ pub struct GltfInstance {
     pub transform: Affine3A,
     /// The node's name (or `nodes[N]`).
     pub node: String,
+    /// The node's index.
+    pub node_index: usize,
+    /// The transform under the node (GPU instancing's; identity otherwise).
+    pub local: Affine3A,
 }
 
 /// A perspective camera and where its node puts it.
@@ -97,6 +102,8 @@ pub struct ImportReport {
     pub skipped_primitives: usize,
     /// Orthographic cameras (not supported; left out).
     pub orthographic_cameras: usize,
+    /// Animation channels of morph-target weights (not supported; left out).
+    pub weight_channels: usize,
     /// Emissive and diffuse-transmission textures on another UV set than the one their
     /// material's meshes keep (the base colour texture's): left out, their factors
     /// still apply.
@@ -116,6 +123,9 @@ pub struct GltfScene {
     pub instances: Vec<GltfInstance>,
     /// Perspective cameras of the default scene, in node order.
     pub cameras: Vec<GltfCamera>,
+    /// The file's animations of node translation, rotation and scale, played together;
+    /// `None` without any.
+    pub animation: Option<NodeAnimation>,
     /// What was left out.
     pub report: ImportReport,
 }
@@ -217,6 +227,14 @@ pub fn import_slice(bytes: &[u8], path: &Path) -> Result<GltfScene, GltfError> {
         .map(|m| mesh(&importer, &mut report, &m, default_slot))
         .collect::<Result<Vec<_>, _>>()?;
     let (instances, cameras) = nodes(&importer, &mut report)?;
+    let animation = animation(&importer, &mut report)?;
+    if report.weight_channels > 0 {
+        tracing::warn!(
+            "{}: left out {} morph-target weight animation channels",
+            path.display(),
+            report.weight_channels
+        );
+    }
     if report.non_finite_vertices > 0 {
         tracing::warn!(
             "{}: dropped {} NaN/Inf vertices ({} triangles)",
@@ -246,8 +264,113 @@ pub fn import_slice(bytes: &[u8], path: &Path) -> Result<GltfScene, GltfError> {
         shaders,
         instances,
         cameras,
+        animation,
         report,
     })
+}
+
+/// The node hierarchy with its rest poses and every animation's TRS channels, checked:
+/// key times finite and not decreasing, one output per key (three for CUBICSPLINE).
+fn animation(
+    importer: &Importer,
+    report: &mut ImportReport,
+) -> Result<Option<NodeAnimation>, GltfError> {
+    use gltf::animation::util::ReadOutputs;
+    let document = &importer.document;
+    if document.animations().len() == 0 {
+        return Ok(None);
+    }
+    let count = document.nodes().len();
+    let mut parents = vec![None; count];
+    let mut rest = Vec::with_capacity(count);
+    for node in document.nodes() {
+        for child in node.children() {
+            parents[child.index()] = Some(node.index());
+        }
+        let (t, r, s) = node.transform().decomposed();
+        rest.push(NodeTrs {
+            translation: Vec3::from(t),
+            rotation: glam::Quat::from_array(r).normalize(),
+            scale: Vec3::from(s),
+        });
+    }
+    let mut channels = Vec::new();
+    for animation in document.animations() {
+        for channel in animation.channels() {
+            let location = format!(
+                "animations[{}].channels[{}]",
+                animation.index(),
+                channel.index()
+            );
+            let reader = channel.reader(importer.buffer_data());
+            let times: Vec<f32> = reader
+                .read_inputs()
+                .ok_or_else(|| {
+                    importer.error(location.clone(), "the sampler's input cannot be read")
+                })?
+                .collect();
+            if times.is_empty()
+                || times.iter().any(|t| !t.is_finite())
+                || times.windows(2).any(|w| w[1] < w[0])
+            {
+                return Err(importer.error(location, "key times must be finite and not decreasing"));
+            }
+            let outputs = reader.read_outputs().ok_or_else(|| {
+                importer.error(location.clone(), "the sampler's output cannot be read")
+            })?;
+            let (property, values): (Property, Vec<glam::Vec4>) = match outputs {
+                ReadOutputs::Translations(v) => (
+                    Property::Translation,
+                    v.map(|p| Vec3::from(p).extend(0.0)).collect(),
+                ),
+                ReadOutputs::Scales(v) => (
+                    Property::Scale,
+                    v.map(|p| Vec3::from(p).extend(0.0)).collect(),
+                ),
+                ReadOutputs::Rotations(v) => (
+                    Property::Rotation,
+                    v.into_f32().map(glam::Vec4::from).collect(),
+                ),
+                ReadOutputs::MorphTargetWeights(_) => {
+                    report.weight_channels += 1;
+                    continue;
+                }
+            };
+            let interpolation = match channel.sampler().interpolation() {
+                gltf::animation::Interpolation::Step => Interpolation::Step,
+                gltf::animation::Interpolation::Linear => Interpolation::Linear,
+                gltf::animation::Interpolation::CubicSpline => Interpolation::CubicSpline,
+            };
+            let per_key = if interpolation == Interpolation::CubicSpline {
+                3
+            } else {
+                1
+            };
+            if values.len() != per_key * times.len() || values.iter().any(|v| !v.is_finite()) {
+                return Err(importer.error(
+                    location,
+                    format!(
+                        "{} finite output values expected for {} keys, {} found",
+                        per_key * times.len(),
+                        times.len(),
+                        values.len()
+                    ),
+                ));
+            }
+            channels.push(Channel {
+                node: channel.target().node().index(),
+                property,
+                times,
+                values,
+                interpolation,
+            });
+        }
+    }
+    Ok((!channels.is_empty()).then_some(NodeAnimation {
+        parents,
+        rest,
+        channels,
+    }))
 }
 
 fn wrap_mode(mode: gltf::texture::WrappingMode) -> WrapMode {
@@ -1021,6 +1144,8 @@ fn nodes(importer: &Importer, report: &mut ImportReport) -> Result<NodeOutput, G
                     mesh: mesh.index(),
                     transform,
                     node: name.clone(),
+                    node_index: node.index(),
+                    local,
                 });
             }
         }
@@ -1229,6 +1354,39 @@ impl GltfScene {
                 }
             })
             .collect();
+        // Instances whose node or an ancestor of it is animated move with the animation.
+        let node_animation = self.animation.map(|animation| {
+            let animated: Vec<bool> = {
+                let mut moved = vec![false; animation.parents.len()];
+                for channel in &animation.channels {
+                    if let Some(m) = moved.get_mut(channel.node) {
+                        *m = true;
+                    }
+                }
+                (0..moved.len())
+                    .map(|mut node| {
+                        for _ in 0..1024 {
+                            if moved[node] {
+                                return true;
+                            }
+                            match animation.parents[node] {
+                                Some(parent) if parent < moved.len() => node = parent,
+                                _ => return false,
+                            }
+                        }
+                        false
+                    })
+                    .collect()
+            };
+            let bound = self
+                .instances
+                .iter()
+                .enumerate()
+                .filter(|(_, i)| animated.get(i.node_index).copied().unwrap_or(false))
+                .map(|(plant, i)| (plant, i.node_index, i.local))
+                .collect();
+            (animation, bound)
+        });
         if sheared > 0 {
             tracing::warn!(
                 "{}: {sheared} instances have sheared transforms, approximated by scale, rotation and translation",
@@ -1244,6 +1402,7 @@ impl GltfScene {
             wind: None,
             camera_path: None,
             sway_factors: Vec::new(),
+            node_animation,
             terrain: None,
             height_field: None,
             shaders: self.shaders,

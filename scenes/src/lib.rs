@@ -121,6 +121,13 @@ pub struct Plant {
 #[derive(Clone, Debug, Default, Resource)]
 pub struct LayerSpacing(pub Vec<f32>);
 
+/// A node animation and the plants it moves: `(index into the plants, node, transform
+/// under the node)` each.
+pub type BoundAnimation = (
+    sylva_engine::node_animation::NodeAnimation,
+    Vec<(usize, usize, glam::Affine3A)>,
+);
+
 /// The sway factors a scene gives per `(layer, species geometry)`, for when the wind is
 /// turned on (`editor::set_wind`); plants not listed sway as their height gives.
 #[derive(Clone, Debug, Default, Resource)]
@@ -165,6 +172,10 @@ pub struct SceneBuild {
     /// Sway factors per `(layer, species geometry)` where they differ from those the
     /// plants' heights give ([`SwayTuning`]).
     pub sway_factors: Vec<(u32, GeometryId, ecosystem::SwayFactors)>,
+    /// A glTF file's node animation and, per animated plant, `(index into plants, node,
+    /// transform under the node)`: what `sylva animate` plays
+    /// (`sylva_systems::NodeAnimationPlayer`).
+    pub node_animation: Option<BoundAnimation>,
     /// The camera's flight, which `sylva animate` puts on the camera (`render` and
     /// `view` use the scene's camera).
     pub camera_path: Option<sylva_engine::camera_path::CameraPath>,

@@ -822,3 +822,294 @@ fn diffuse_transmission_lets_light_through_from_behind_clamped_and_textured() {
         "{error}"
     );
 }
+
+/// A glTF in the manner of Khronos' InterpolationTest: three triangle nodes, the first
+/// under a parent whose translation is animated with STEP, the second rotated with
+/// LINEAR, the third scaled with CUBICSPLINE, all on keys at 0, 1 and 2 s.
+fn animated_gltf() -> String {
+    let floats = |v: &[f32]| -> Vec<u8> { v.iter().flat_map(|f| f.to_le_bytes()).collect() };
+    let half = std::f32::consts::FRAC_1_SQRT_2;
+    let parts: [Vec<u8>; 5] = [
+        floats(&[0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0, 0.0]),
+        floats(&[0.0, 1.0, 2.0]),
+        floats(&[0.0, 0.0, 0.0, 2.0, 0.0, 0.0, 2.0, 3.0, 0.0]),
+        // Identity, 90° about Y, 180° about Y.
+        floats(&[0.0, 0.0, 0.0, 1.0, 0.0, half, 0.0, half, 0.0, 1.0, 0.0, 0.0]),
+        // (in-tangent, value, out-tangent) per key.
+        floats(&[
+            0.0, 0.0, 0.0, 1.0, 1.0, 1.0, 1.0, 0.0, 0.0, //
+            0.0, 2.0, 0.0, 2.0, 2.0, 2.0, 0.0, 0.0, 1.0, //
+            0.0, 0.0, 0.0, 1.0, 1.0, 1.0, 0.0, 0.0, 0.0,
+        ]),
+    ];
+    let mut bytes = Vec::new();
+    let mut views = Vec::new();
+    for part in &parts {
+        views.push(format!(
+            r#"{{"buffer":0,"byteOffset":{},"byteLength":{}}}"#,
+            bytes.len(),
+            part.len()
+        ));
+        bytes.extend(part);
+    }
+    format!(
+        r#"{{"asset":{{"version":"2.0"}},"scene":0,"scenes":[{{"nodes":[0,2,3]}}],
+"nodes":[{{"children":[1],"translation":[0,0,-1]}},{{"mesh":0,"translation":[0,0.5,0]}},{{"mesh":0,"translation":[4,0,0]}},{{"mesh":0,"translation":[-4,0,0]}}],
+"meshes":[{{"primitives":[{{"attributes":{{"POSITION":0}}}}]}}],
+"animations":[
+ {{"channels":[{{"sampler":0,"target":{{"node":0,"path":"translation"}}}}],"samplers":[{{"input":1,"interpolation":"STEP","output":2}}]}},
+ {{"channels":[{{"sampler":0,"target":{{"node":2,"path":"rotation"}}}}],"samplers":[{{"input":1,"interpolation":"LINEAR","output":3}}]}},
+ {{"channels":[{{"sampler":0,"target":{{"node":3,"path":"scale"}}}}],"samplers":[{{"input":1,"interpolation":"CUBICSPLINE","output":4}}]}}],
+"buffers":[{{"byteLength":{},"uri":"data:application/octet-stream;base64,{}"}}],
+"bufferViews":[{}],
+"accessors":[{{"bufferView":0,"componentType":5126,"count":3,"type":"VEC3","min":[0,0,0],"max":[1,1,0]}},
+ {{"bufferView":1,"componentType":5126,"count":3,"type":"SCALAR","min":[0],"max":[2]}},
+ {{"bufferView":2,"componentType":5126,"count":3,"type":"VEC3"}},
+ {{"bufferView":3,"componentType":5126,"count":3,"type":"VEC4"}},
+ {{"bufferView":4,"componentType":5126,"count":9,"type":"VEC3"}}]}}"#,
+        bytes.len(),
+        base64(&bytes),
+        views.join(",")
+    )
+}
+
+#[test]
+fn animation_channels_move_their_nodes_as_the_gltf_spec_says() {
+    use bevy_ecs::prelude::*;
+    use sylva_engine::components::Transform;
+    use sylva_engine::sway::AnimationClock;
+    use sylva_systems::{NodeAnimationPlayer, TopLevelState, frame_schedule, init_render_world};
+    let text = animated_gltf();
+    let scene = sylva_scenes::gltf::import_slice(text.as_bytes(), Path::new("anim.gltf")).unwrap();
+    let animation = scene.animation.clone().expect("the file has animations");
+    assert_eq!(animation.channels.len(), 3);
+    assert_eq!(animation.duration(), 2.0);
+    let world_at = |t: f32| animation.world_transforms(t);
+    let close = |a: Vec3A, b: Vec3| (a - Vec3A::from(b)).length() < 1e-5;
+
+    // STEP: the parent's key 0 until t = 1, then key 1; the child rides on it.
+    assert!(close(
+        world_at(0.99)[1].translation,
+        Vec3::new(0.0, 0.5, 0.0)
+    ));
+    assert!(close(
+        world_at(1.0)[1].translation,
+        Vec3::new(2.0, 0.5, 0.0)
+    ));
+    assert!(close(
+        world_at(9.0)[1].translation,
+        Vec3::new(2.0, 3.5, 0.0)
+    ));
+    // LINEAR rotation: halfway between 0° and 90° about Y at t = 0.5.
+    let (_, rotation, _) = world_at(0.5)[2].to_scale_rotation_translation();
+    let expected = glam::Quat::from_rotation_y(std::f32::consts::FRAC_PI_4);
+    assert!(1.0 - rotation.dot(expected).abs() < 1e-6, "{rotation}");
+    // CUBICSPLINE scale at t = 0.25 (s = 0.25, Δt = 1): the Hermite formula with the
+    // out-tangent of key 0 and the in-tangent of key 1.
+    let s = 0.25f32;
+    let (s2, s3) = (s * s, s * s * s);
+    let p0 = Vec3::splat(1.0);
+    let b0 = Vec3::new(1.0, 0.0, 0.0);
+    let a1 = Vec3::new(0.0, 2.0, 0.0);
+    let p1 = Vec3::splat(2.0);
+    let scale = p0 * (2.0 * s3 - 3.0 * s2 + 1.0)
+        + b0 * (s3 - 2.0 * s2 + s)
+        + p1 * (-2.0 * s3 + 3.0 * s2)
+        + a1 * (s3 - s2);
+    let (got, _, _) = world_at(0.25)[3].to_scale_rotation_translation();
+    assert!((got - scale).length() < 1e-5, "{got} vs {scale}");
+
+    // In a world: the three triangles follow their nodes frame by frame, and only the
+    // top level's refit runs after the first build.
+    let build = scene.into_scene(&CameraChoice::First).unwrap();
+    let (animation, bound) = build.node_animation.clone().expect("bound instances");
+    assert_eq!(bound.len(), 3, "the child of the animated parent moves too");
+    let mut world = World::new();
+    init_render_world(&mut world, 1).unwrap();
+    let mut build = build;
+    build.camera.width = 16;
+    build.camera.height = 12;
+    let spawned = sylva_scenes::spawn(&mut world, build);
+    let instances = bound
+        .iter()
+        .map(|&(plant, node, local)| (spawned.plants[plant], node, local))
+        .collect();
+    world.insert_resource(NodeAnimationPlayer {
+        animation: animation.clone(),
+        instances,
+    });
+    let mut schedule = frame_schedule();
+    for frame in 0..6 {
+        world.resource_mut::<AnimationClock>().frame_seconds = if frame == 0 { 0.0 } else { 0.25 };
+        schedule.run(&mut world);
+        let time = world.resource::<AnimationClock>().time as f32;
+        let nodes = animation.world_transforms(time);
+        for &(plant, node, _) in &bound {
+            let t = world.get::<Transform>(spawned.plants[plant]).unwrap();
+            assert!(
+                close(nodes[node].translation, t.translation),
+                "frame {frame}"
+            );
+        }
+    }
+    let state = world.resource::<TopLevelState>();
+    assert_eq!(state.rebuilds, 1, "one build, then refits");
+    assert_eq!(state.refits, 5);
+}
+
+/// The spec's value of a sampler at `time`, computed here from the file's keys as read by
+/// the gltf crate (not by the importer): STEP, LINEAR (rotations: normalised slerp) and
+/// CUBICSPLINE (Hermite with the tangents scaled by the key interval).
+fn spec_value(
+    times: &[f32],
+    outputs: &[glam::Vec4],
+    interpolation: gltf::animation::Interpolation,
+    rotation: bool,
+    time: f32,
+) -> glam::Vec4 {
+    use gltf::animation::Interpolation::*;
+    let cubic = interpolation == CubicSpline;
+    let value = |k: usize| {
+        if cubic {
+            outputs[3 * k + 1]
+        } else {
+            outputs[k]
+        }
+    };
+    let last = times.len() - 1;
+    if time <= times[0] {
+        return value(0);
+    }
+    if time >= times[last] {
+        return value(last);
+    }
+    let k = (0..last).rev().find(|&k| times[k] <= time).unwrap();
+    let dt = times[k + 1] - times[k];
+    let s = (time - times[k]) / dt;
+    match interpolation {
+        Step => value(k),
+        Linear if rotation => {
+            let a = glam::Quat::from_vec4(value(k)).normalize();
+            let b = glam::Quat::from_vec4(value(k + 1)).normalize();
+            glam::Vec4::from(a.slerp(b, s))
+        }
+        Linear => value(k) * (1.0 - s) + value(k + 1) * s,
+        CubicSpline => {
+            let (s2, s3) = (s * s, s * s * s);
+            let v = value(k) * (2.0 * s3 - 3.0 * s2 + 1.0)
+                + outputs[3 * k + 2] * dt * (s3 - 2.0 * s2 + s)
+                + value(k + 1) * (-2.0 * s3 + 3.0 * s2)
+                + outputs[3 * (k + 1)] * dt * (s3 - s2);
+            if rotation { v.normalize() } else { v }
+        }
+    }
+}
+
+#[test]
+fn interpolation_test_moves_every_node_as_its_sampler_says() {
+    use gltf::animation::util::ReadOutputs;
+    let path = model("InterpolationTest");
+    let scene = import(&path).unwrap();
+    let animation = scene.animation.expect("InterpolationTest is animated");
+    let (document, buffers, _) = gltf::import(&path).unwrap();
+    let mut checked = std::collections::BTreeSet::new();
+    for channel in document
+        .animations()
+        .flat_map(|a| a.channels().collect::<Vec<_>>())
+    {
+        let reader = channel.reader(|b| Some(&buffers[b.index()]));
+        let times: Vec<f32> = reader.read_inputs().unwrap().collect();
+        let (outputs, rotation): (Vec<glam::Vec4>, bool) = match reader.read_outputs().unwrap() {
+            ReadOutputs::Translations(v) | ReadOutputs::Scales(v) => {
+                (v.map(|p| Vec3::from(p).extend(0.0)).collect(), false)
+            }
+            ReadOutputs::Rotations(v) => (v.into_f32().map(glam::Vec4::from).collect(), true),
+            ReadOutputs::MorphTargetWeights(_) => continue,
+        };
+        let node = channel.target().node().index();
+        let interpolation = channel.sampler().interpolation();
+        let property = channel.target().property();
+        // At every key, halfway and a quarter between keys, and past both ends.
+        let mut samples = vec![times[0] - 0.5, times[times.len() - 1] + 0.5];
+        for w in times.windows(2) {
+            samples.extend([
+                w[0],
+                w[0] + 0.25 * (w[1] - w[0]),
+                w[0] + 0.5 * (w[1] - w[0]),
+            ]);
+        }
+        for time in samples {
+            let expected = spec_value(&times, &outputs, interpolation, rotation, time);
+            // Every InterpolationTest node is a root: its world transform is its pose.
+            let (scale, turn, translation) =
+                animation.world_transforms(time)[node].to_scale_rotation_translation();
+            let got = match property {
+                gltf::animation::Property::Translation => translation.extend(0.0),
+                gltf::animation::Property::Scale => scale.extend(0.0),
+                _ => glam::Vec4::from(turn),
+            };
+            let error = if rotation {
+                1.0 - got.dot(expected).abs()
+            } else {
+                (got - expected).length()
+            };
+            assert!(
+                error < 1e-4,
+                "node {node} {property:?} {interpolation:?} at {time}: {got} vs {expected}"
+            );
+        }
+        checked.insert(format!("{property:?} {interpolation:?}"));
+    }
+    // Every sampler kind on every property the file has.
+    assert_eq!(checked.len(), 9, "{checked:?}");
+}
+
+#[test]
+fn box_animated_moves_the_child_with_its_parent_and_only_refits_the_top_level() {
+    use bevy_ecs::prelude::*;
+    use sylva_engine::components::Transform;
+    use sylva_engine::sway::AnimationClock;
+    use sylva_systems::{NodeAnimationPlayer, TopLevelState, frame_schedule, init_render_world};
+    let scene = import(&model("BoxAnimated")).unwrap();
+    let animation = scene.animation.clone().unwrap();
+    assert_eq!(animation.channels.len(), 2);
+    let mut build = scene.into_scene(&CameraChoice::First).unwrap();
+    let (animation, bound) = build.node_animation.take().unwrap();
+    // The inner box (node 2, rotated) sits under node 1 under node 0 (translated): it
+    // is bound; the outer box (node 3) does not move and is not.
+    assert_eq!(bound.iter().map(|b| b.1).collect::<Vec<_>>(), vec![2]);
+    build.camera.width = 16;
+    build.camera.height = 12;
+    let mut world = World::new();
+    init_render_world(&mut world, 1).unwrap();
+    let spawned = sylva_scenes::spawn(&mut world, build);
+    let inner = spawned.plants[bound[0].0];
+    world.insert_resource(NodeAnimationPlayer {
+        animation: animation.clone(),
+        instances: vec![(inner, bound[0].1, bound[0].2)],
+    });
+    let mut schedule = frame_schedule();
+    let mut heights = Vec::new();
+    for frame in 0..9 {
+        world.resource_mut::<AnimationClock>().frame_seconds = if frame == 0 { 0.0 } else { 0.5 };
+        schedule.run(&mut world);
+        let time = world.resource::<AnimationClock>().time as f32;
+        let t = *world.get::<Transform>(inner).unwrap();
+        let expected = animation.world_transforms(time)[2];
+        assert!((Vec3A::from(t.translation) - expected.translation).length() < 1e-5);
+        heights.push(t.translation.y);
+    }
+    // The parent's translation channel lifts the inner box to 2.52 m and, by its last
+    // key at 3.71 s, back down; it stays there after the end.
+    let top = heights.iter().copied().fold(0.0f32, f32::max);
+    assert!(
+        top > 2.5 && heights[0] < 1e-6 && heights[8] < 1e-6,
+        "{heights:?}"
+    );
+    // Only transforms change: after the first build every frame refits, or rebuilds
+    // because the refitted tree degraded past the refit limit (two boxes passing
+    // through each other), never because the instances changed.
+    let state = world.resource::<TopLevelState>();
+    assert_eq!(state.rebuilds - state.degraded_rebuilds, 1, "{state:?}");
+    assert_eq!(state.refits + state.degraded_rebuilds, 8, "{state:?}");
+}

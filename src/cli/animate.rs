@@ -7,6 +7,7 @@ use super::*;
 use indicatif::{ProgressBar, ProgressStyle};
 use sylva::engine::discontinuity::FilteredImage;
 use sylva::scenes::editor;
+use sylva::systems::NodeAnimationPlayer;
 use sylva::systems::animation::Sequence;
 use sylva::systems::shown_film;
 
@@ -14,7 +15,8 @@ use sylva::systems::shown_film;
 pub(crate) struct AnimateArgs {
     #[command(flatten)]
     scene: SceneArgs,
-    /// Seconds of animation [default: to the last key of the scene file's camera path].
+    /// Seconds of animation [default: to the last key of the scene file's camera path or
+    /// of the glTF file's animation].
     #[arg(long, value_parser = parse_seconds)]
     seconds: Option<f64>,
     /// Images per second of animation.
@@ -167,17 +169,42 @@ pub(crate) fn run(args: AnimateArgs) -> Result<()> {
     };
     // The scene file's camera flight: the camera follows it from image 0.
     let camera_path = scene.camera_path.take();
-    let seconds = match (args.seconds, &camera_path) {
-        (Some(seconds), _) => seconds,
-        (None, Some(path)) if path.keys()[path.keys().len() - 1].time > 0.0 => {
-            path.keys()[path.keys().len() - 1].time
-        }
-        (None, _) => bail!(
-            "give --seconds: how long the animation runs (the scene has no camera path to \
-             take it from)"
+    // A glTF file's node animation plays on the plants it moves.
+    let node_animation = scene.node_animation.take();
+    let last_key = camera_path
+        .as_ref()
+        .map(|p| p.keys()[p.keys().len() - 1].time)
+        .into_iter()
+        .chain(
+            node_animation
+                .as_ref()
+                .map(|(a, _)| f64::from(a.duration())),
+        )
+        .fold(0.0, f64::max);
+    let seconds = match args.seconds {
+        Some(seconds) => seconds,
+        None if last_key > 0.0 => last_key,
+        None => bail!(
+            "give --seconds: how long the animation runs (the scene has no camera path or \
+             animation to take it from)"
         ),
     };
     let spawned = spawn(&mut world, scene);
+    if let Some((animation, bound)) = node_animation {
+        let instances = bound
+            .into_iter()
+            .filter_map(|(plant, node, local)| {
+                spawned
+                    .plants
+                    .get(plant)
+                    .map(|&entity| (entity, node, local))
+            })
+            .collect();
+        world.insert_resource(NodeAnimationPlayer {
+            animation,
+            instances,
+        });
+    }
     if let Some(environment) = environment {
         world.spawn(environment);
     }

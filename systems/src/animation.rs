@@ -5,7 +5,9 @@
 //! rendered in one go.
 
 use crate::embed::has_component;
-use crate::systems::{advance_animation_clock, animate, follow_camera_paths};
+use crate::systems::{
+    NodeAnimationPlayer, advance_animation_clock, animate, follow_camera_paths, play_node_animation,
+};
 use crate::{Flow, Progress, RenderSeed, StopAt, Stopped, refine};
 use bevy_ecs::prelude::*;
 use bevy_ecs::system::RunSystemOnce;
@@ -42,7 +44,8 @@ impl Sequence {
         // while something moves with it.
         let sways = has_component::<Sway>(world);
         let paths = has_component::<CameraPath>(world);
-        for _ in (from..to).filter(|_| sways || paths) {
+        let nodes = world.contains_resource::<NodeAnimationPlayer>();
+        for _ in (from..to).filter(|_| sways || paths || nodes) {
             world.resource_mut::<AnimationClock>().frame_seconds = 1.0 / self.fps;
             // These cannot fail to run: every parameter they take exists.
             let _ = world.run_system_once(advance_animation_clock);
@@ -52,6 +55,9 @@ impl Sequence {
         }
         if paths {
             let _ = world.run_system_once(follow_camera_paths);
+        }
+        if nodes {
+            let _ = world.run_system_once(play_node_animation);
         }
         world.resource_mut::<AnimationClock>().frame_seconds = 0.0;
     }

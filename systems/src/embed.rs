@@ -41,8 +41,9 @@ use sylva_engine::sway::Sway;
 /// interleaving); without `display_filter` the shown image is the film's.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub struct Stages {
-    /// [`advance_animation_clock`], [`animate`] (`Sway` components in the `Wind`) and
-    /// [`follow_camera_paths`] (`CameraPath`s).
+    /// [`advance_animation_clock`], [`animate`] (`Sway` components in the `Wind`),
+    /// [`follow_camera_paths`] (`CameraPath`s) and [`play_node_animation`] (a glTF
+    /// file's animation).
     pub animation: bool,
     /// [`build_opacity_maps`] and [`adaptive_transparency_lod`]: alpha-masked shaders.
     pub alpha_masks: bool,
@@ -80,7 +81,9 @@ impl Stages {
             .iter(world)
             .any(|s| s.texture.is_some() && s.alpha_cutoff.is_some());
         Stages {
-            animation: has_component::<Sway>(world) || has_component::<CameraPath>(world),
+            animation: has_component::<Sway>(world)
+                || has_component::<CameraPath>(world)
+                || world.contains_resource::<NodeAnimationPlayer>(),
             alpha_masks,
             environment: has_component::<EnvironmentLight>(world),
             display_filter: has_component::<DiscontinuityFilter>(world),
@@ -209,6 +212,7 @@ pub fn add_render_systems(schedule: &mut Schedule, stages: Stages) {
                 advance_animation_clock.run_if(animation_present),
                 animate.run_if(any_with_component::<Sway>),
                 follow_camera_paths.run_if(any_with_component::<CameraPath>),
+                play_node_animation.run_if(resource_exists::<NodeAnimationPlayer>),
             )
                 .chain()
                 .in_set(RenderSystems::Animate),
@@ -269,6 +273,7 @@ pub fn stage_name(system: &dyn System<In = (), Out = ()>) -> Option<&'static str
         (type_of(advance_animation_clock), "advance_animation_clock"),
         (type_of(animate), "animate"),
         (type_of(follow_camera_paths), "follow_camera_paths"),
+        (type_of(play_node_animation), "play_node_animation"),
         (type_of(rebase_world_origin), "rebase_world_origin"),
         (type_of(rebuild_top_level), "rebuild_top_level"),
         (type_of(compile_shaders), "compile_shaders"),

@@ -17,6 +17,7 @@ use sylva_engine::film::{Film, FrameBuffer, Tile};
 use sylva_engine::geometry::GeometryLibrary;
 use sylva_engine::interleave::{LightInterleave, LightSubsets};
 use sylva_engine::light::{DirectionalLight, LightSet, SkyLight};
+use sylva_engine::node_animation::NodeAnimation;
 use sylva_engine::opacity::OpacityMaps;
 use sylva_engine::render::{FramePlan, RenderParams, RenderScene, render_frame_unless};
 use sylva_engine::sampling::mix64;
@@ -50,9 +51,49 @@ pub fn advance_animation_clock(mut clock: ResMut<AnimationClock>) {
 }
 
 /// Run condition of [`advance_animation_clock`]: something moves with the clock (a
-/// swaying plant or a camera on a path); otherwise the clock stands still.
-pub fn animation_present(sways: Query<(), With<Sway>>, paths: Query<(), With<CameraPath>>) -> bool {
-    !sways.is_empty() || !paths.is_empty()
+/// swaying plant, a camera on a path or a node animation); otherwise the clock stands
+/// still.
+pub fn animation_present(
+    sways: Query<(), With<Sway>>,
+    paths: Query<(), With<CameraPath>>,
+    nodes: Option<Res<NodeAnimationPlayer>>,
+) -> bool {
+    !sways.is_empty() || !paths.is_empty() || nodes.is_some()
+}
+
+/// A node animation (from a glTF file) bound to the world: the plant entity that shows
+/// each animated instance, its node, and the transform under the node (GPU instancing's).
+#[derive(Resource, Clone, Debug)]
+pub struct NodeAnimationPlayer {
+    /// The hierarchy and its channels.
+    pub animation: NodeAnimation,
+    /// `(plant, node, local)`: the plant's transform is the node's world transform times
+    /// `local`.
+    pub instances: Vec<(Entity, usize, glam::Affine3A)>,
+}
+
+/// Poses every plant of the [`NodeAnimationPlayer`] as its node is at the clock's time
+/// (held at the last key after the end). Unchanged transforms are not written, so only
+/// moving plants refit the top level.
+pub fn play_node_animation(
+    clock: Res<AnimationClock>,
+    player: Res<NodeAnimationPlayer>,
+    mut transforms: Query<&mut Transform>,
+) {
+    let world = player.animation.world_transforms(clock.time as f32);
+    for &(entity, node, local) in &player.instances {
+        let Some(node_world) = world.get(node) else {
+            continue;
+        };
+        let (scale, rotation, translation) = (*node_world * local).to_scale_rotation_translation();
+        if let Ok(mut transform) = transforms.get_mut(entity) {
+            transform.set_if_neq(Transform {
+                translation,
+                rotation: rotation.normalize(),
+                scale,
+            });
+        }
+    }
 }
 
 /// Puts every camera with a [`CameraPath`] where its path is at the clock's time
