@@ -178,6 +178,11 @@ pub struct Wind {
     pub gust_wavelength: f32,
     /// Multiplies every torque (a one-frame gust test sets it to 1000).
     pub strength: f32,
+    /// Turbulence: gusts that also vary across the wind, as a fraction of the mean
+    /// speed (0: the gust fronts are straight lines).
+    pub turbulence: f32,
+    /// Seed of the turbulence's pattern: the same seed blows the same way.
+    pub seed: u64,
 }
 
 impl Default for Wind {
@@ -189,6 +194,8 @@ impl Default for Wind {
             gust_frequency: 0.3,
             gust_wavelength: 25.0,
             strength: 1.0,
+            turbulence: 0.0,
+            seed: 0,
         }
     }
 }
@@ -203,6 +210,7 @@ impl Wind {
                 self.gust_frequency,
                 self.gust_wavelength,
                 self.strength,
+                self.turbulence,
             ]
             .iter()
             .all(|v| v.is_finite())
@@ -215,7 +223,26 @@ impl Wind {
         let wavelength = f64::from(self.gust_wavelength.max(1e-3));
         let phase =
             std::f64::consts::TAU * (f64::from(self.gust_frequency) * t - along / wavelength);
-        let gust = 1.0 + f64::from(self.gustiness) * (phase.sin() + 0.5 * (2.7 * phase).sin());
+        let mut gust = 1.0 + f64::from(self.gustiness) * (phase.sin() + 0.5 * (2.7 * phase).sin());
+        if self.turbulence != 0.0 {
+            // Two waves across the wind at incommensurate rates, their phases and angles
+            // from the seed: gust fronts that bend and break up.
+            let across = DVec2::new(-dir.y, dir.x).dot(p.as_dvec2());
+            let unit = |k: u64| {
+                (crate::sampling::mix64(self.seed ^ k.wrapping_mul(0x9e37_79b9_7f4a_7c15)) >> 11)
+                    as f64
+                    / (1u64 << 53) as f64
+            };
+            let wave = |k: u64, rate: f64| {
+                let angle = (unit(2 * k) - 0.5) * std::f64::consts::PI;
+                let offset = std::f64::consts::TAU * unit(2 * k + 1);
+                let position = (along * angle.sin() + across * angle.cos()) / wavelength;
+                (std::f64::consts::TAU * (rate * f64::from(self.gust_frequency) * t - position)
+                    + offset)
+                    .sin()
+            };
+            gust += f64::from(self.turbulence) * 0.5 * (wave(1, 1.37) + wave(2, 2.11));
+        }
         dir * f64::from(self.speed) * gust.max(0.0)
     }
 
@@ -352,5 +379,37 @@ mod tests {
         let n = clock.advance().len();
         assert_eq!(n, 2);
         assert!((clock.carry - (0.01 - 2.0 * SUBSTEP)).abs() < 1e-12);
+    }
+
+    #[test]
+    fn turbulence_varies_the_wind_across_it_by_its_seed_and_is_off_by_default() {
+        let calm = Wind::default();
+        // Without turbulence the gust fronts are straight: the same speed anywhere across
+        // the wind (here along z for a wind toward +x).
+        for z in [-30.0, 0.0, 17.0] {
+            assert_eq!(
+                calm.velocity(Vec2::new(5.0, z), 2.5),
+                calm.velocity(Vec2::new(5.0, 0.0), 2.5)
+            );
+        }
+        let turbulent = |seed| Wind {
+            turbulence: 0.6,
+            seed,
+            ..Wind::default()
+        };
+        let across: Vec<f64> = (0..20)
+            .map(|i| turbulent(7).velocity(Vec2::new(5.0, i as f32 * 3.0), 2.5).x)
+            .collect();
+        let spread = across.iter().copied().fold(f64::MIN, f64::max)
+            - across.iter().copied().fold(f64::MAX, f64::min);
+        assert!(spread > 0.5, "{across:?}");
+        let p = Vec2::new(12.0, -4.0);
+        assert_eq!(turbulent(7).velocity(p, 1.0), turbulent(7).velocity(p, 1.0));
+        assert_ne!(turbulent(7).velocity(p, 1.0), turbulent(8).velocity(p, 1.0));
+        // Never blowing backwards.
+        for i in 0..200 {
+            let v = turbulent(3).velocity(Vec2::new(i as f32, (i * 7 % 50) as f32), i as f64 * 0.1);
+            assert!(v.x >= 0.0 && v.is_finite());
+        }
     }
 }

@@ -49,6 +49,8 @@
 //! gustiness = 0.5          # optional: gusts as a fraction of the speed, 0 … 2
 //! gust_frequency = 0.3     # optional, Hz
 //! gust_wavelength = 25.0   # optional, metres between gust fronts
+//! turbulence = 0.4         # optional: gusts varying across the wind too, 0 … 2
+//! seed = 3                 # optional: the turbulence's pattern
 //!
 //! [sky]                    # the Preetham daylight model for the sun above …
 //! turbidity = 3.0
@@ -138,6 +140,8 @@ struct WindDoc {
     gustiness: Option<Spanned<f32>>,
     gust_frequency: Option<Spanned<f32>>,
     gust_wavelength: Option<Spanned<f32>>,
+    turbulence: Option<Spanned<f32>>,
+    seed: Option<u64>,
 }
 
 #[derive(Deserialize)]
@@ -451,6 +455,8 @@ impl SceneFile {
                     calm.gust_wavelength,
                 )?,
                 strength: 1.0,
+                turbulence: optional(&w.turbulence, "wind.turbulence", 0.0, 2.0, 0.0)?,
+                seed: w.seed.unwrap_or(0),
             });
         }
         if let Some(s) = &doc.sky {
@@ -899,6 +905,16 @@ mod tests {
             (calm.gustiness, calm.gust_frequency, calm.gust_wavelength)
         );
         assert_eq!(parse("preset = \"meadow\"\n").unwrap().spec.wind, None);
+        let turbulent = parse("[wind]\nspeed = 8\nturbulence = 0.4\nseed = 5\n").unwrap();
+        let wind = turbulent.spec.wind.unwrap();
+        assert_eq!((wind.turbulence, wind.seed), (0.4, 5));
+        let error = parse("[wind]\nspeed = 8\nturbulence = 3\n")
+            .unwrap_err()
+            .to_string();
+        assert!(
+            error.contains("wind.turbulence: 3 is out of range"),
+            "{error}"
+        );
     }
 
     #[test]
