@@ -3,7 +3,9 @@
 //! up), it spawns and despawns plants while running, picks the plant under a moving
 //! cursor, and reads each frame's image in place as a texture upload would. Sylva renders
 //! on the game's own rayon pool, so the two share the cores. Run with
-//! `cargo run --release --example game_loop -- [ticks]`.
+//! `cargo run --release --example game_loop -- [ticks] [trace.json]`; with a trace file
+//! it also writes a Chrome trace (chrome://tracing or Perfetto) in which the game's
+//! spring spans and Sylva's tile spans share the same `game-worker` threads.
 
 use std::collections::BTreeSet;
 use std::sync::{Arc, Mutex};
@@ -51,6 +53,7 @@ fn spring(pool: Res<RenderPool>, mut plants: Query<(&mut Transform, &mut Tilt)>)
     const STIFFNESS: f32 = 30.0;
     const DAMPING: f32 = 3.0;
     pool.install(|| {
+        let _span = tracing::info_span!("game: spring").entered();
         plants.par_iter_mut().for_each(|(mut transform, mut tilt)| {
             if tilt.angle == 0.0 && tilt.velocity == 0.0 {
                 return;
@@ -76,6 +79,12 @@ fn main() {
         .nth(1)
         .and_then(|a| a.parse().ok())
         .unwrap_or(60);
+    let _trace = std::env::args().nth(2).map(|path| {
+        use tracing_subscriber::prelude::*;
+        let (chrome, guard) = tracing_chrome::ChromeLayerBuilder::new().file(path).build();
+        tracing_subscriber::registry().with(chrome).init();
+        guard
+    });
 
     // The game's pool: its own parallel work and Sylva's tiles and builds run here.
     let game_pool = Arc::new(
