@@ -170,30 +170,13 @@ fn a_scene_files_camera_path_sets_the_length_and_moves_the_view() {
          [[camera.path]]\ntime = 0.25\neye = [10, 30]\neye_height = 6\ntarget = [0, 0]\n",
     )
     .unwrap();
-    let run = Command::new(env!("CARGO_BIN_EXE_sylva"))
-        .args(["animate", "--scene"])
-        .arg(&scene)
-        .args([
-            "--fps",
-            "10",
-            "--width",
-            "32",
-            "--height",
-            "24",
-            "--preset",
-            "interactive",
-            "--wind",
-            "off",
-            "--quiet",
-            "--out",
-        ])
-        .arg(dir.join("f_%d.png"))
-        .output()
-        .unwrap();
-    assert!(
-        run.status.success(),
-        "{}",
-        String::from_utf8_lossy(&run.stderr)
+    let scene_arg = scene.to_str().unwrap();
+    let out = dir.join("f_%d.png");
+    animate_still_camera(
+        &[
+            "--scene", scene_arg, "--fps", "10", "--width", "32", "--height", "24",
+        ],
+        &out,
     );
     // 0.25 s at 10 fps: images at 0, 0.1 and 0.2 s.
     let written: Vec<Vec<u8>> = (0..3)
@@ -218,32 +201,13 @@ fn a_gltf_animation_plays_for_its_length_the_same_on_any_threads() {
     let cube = Path::new(env!("CARGO_MANIFEST_DIR"))
         .join("tests/data/gltf/AnimatedCube/glTF/AnimatedCube.gltf");
     let run = |dir: &Path, threads: &str| {
-        let output = Command::new(env!("CARGO_BIN_EXE_sylva"))
-            .args(["animate", "--gltf"])
-            .arg(&cube)
-            .args([
-                "--fps",
-                "4",
-                "--width",
-                "48",
-                "--height",
-                "36",
-                "--preset",
-                "interactive",
-                "--wind",
-                "off",
-                "--quiet",
-                "--threads",
-                threads,
-                "--out",
-            ])
-            .arg(dir.join("f_%d.exr"))
-            .output()
-            .unwrap();
-        assert!(
-            output.status.success(),
-            "{}",
-            String::from_utf8_lossy(&output.stderr)
+        let cube_arg = cube.to_str().unwrap();
+        let args = [
+            "--gltf", cube_arg, "--fps", "4", "--width", "48", "--height", "36",
+        ];
+        animate_still_camera(
+            &[&args[..], &["--threads", threads]].concat(),
+            &dir.join("f_%d.exr"),
         );
         let mut images = Vec::new();
         while let Ok(bytes) = std::fs::read(dir.join(format!("f_{}.exr", images.len()))) {
@@ -259,4 +223,28 @@ fn a_gltf_animation_plays_for_its_length_the_same_on_any_threads() {
     assert_eq!(run(&two, "2"), images, "1 and 2 threads");
     std::fs::remove_dir_all(&one).ok();
     std::fs::remove_dir_all(&two).ok();
+}
+
+/// Runs `sylva animate ARGS --preset interactive --wind off --quiet --out OUT`, which must
+/// succeed (only the camera or the file's animation moves).
+fn animate_still_camera(args: &[&str], out: &Path) {
+    let run = Command::new(env!("CARGO_BIN_EXE_sylva"))
+        .arg("animate")
+        .args(args)
+        .args([
+            "--preset",
+            "interactive",
+            "--wind",
+            "off",
+            "--quiet",
+            "--out",
+        ])
+        .arg(out)
+        .output()
+        .unwrap();
+    assert!(
+        run.status.success(),
+        "{}",
+        String::from_utf8_lossy(&run.stderr)
+    );
 }

@@ -71,7 +71,7 @@ fn a_scripted_walkthrough_shows_what_render_makes_and_changes_when_the_camera_mo
         ),
     )
     .unwrap();
-    run_script(&script);
+    run_script(&script, &[]);
 
     // The window's first view after two frames is the interactive render's image.
     let (shown, w, h) = rgb(&first);
@@ -131,20 +131,27 @@ fn without_a_display_view_says_so_and_bad_scripts_name_their_line() {
 }
 
 /// Runs `sylva view` at 96×72 on the script at `path`, which must succeed.
-fn run_script(path: &Path) {
-    let run = view_on_xvfb(&[
-        "--width",
-        "96",
-        "--height",
-        "72",
-        "--script",
-        path.to_str().unwrap(),
-    ]);
+/// Runs the walkthrough script `path` at 96×72 with `extra` arguments; it must succeed.
+fn run_script(path: &Path, extra: &[&str]) -> Output {
+    let args = [
+        &[
+            "--width",
+            "96",
+            "--height",
+            "72",
+            "--script",
+            path.to_str().unwrap(),
+        ][..],
+        extra,
+    ]
+    .concat();
+    let run = view_on_xvfb(&args);
     assert!(
         run.status.success(),
         "{}",
         String::from_utf8_lossy(&run.stderr)
     );
+    run
 }
 
 /// RGB bytes of `sylva render --preset interactive --frames 2` at 96×72 written to `out`,
@@ -194,7 +201,7 @@ fn screenshots_of_steps(name: &str, steps: &[&str]) -> Vec<Vec<u8>> {
         .collect();
     let path = dir.join("script.toml");
     std::fs::write(&path, script).unwrap();
-    run_script(&path);
+    run_script(&path, &[]);
     let images = (0..steps.len()).map(|i| rgb(&shot(i)).0).collect();
     std::fs::remove_dir_all(&dir).ok();
     images
@@ -445,22 +452,9 @@ fn a_profiled_window_logs_every_shown_frame() {
     let script = dir.join("walk.toml");
     std::fs::write(&script, "[[step]]\nframes = 3\nquit = true\n").unwrap();
     let csv = dir.join("view.csv");
-    let run = view_on_xvfb(&[
-        "--width",
-        "96",
-        "--height",
-        "72",
-        "--threads",
-        "2",
-        "--script",
-        script.to_str().unwrap(),
-        "--profile",
-        csv.to_str().unwrap(),
-    ]);
-    assert!(
-        run.status.success(),
-        "{}",
-        String::from_utf8_lossy(&run.stderr)
+    let run = run_script(
+        &script,
+        &["--threads", "2", "--profile", csv.to_str().unwrap()],
     );
     let stdout = String::from_utf8_lossy(&run.stdout);
     assert!(stdout.contains("profile of"), "{stdout}");

@@ -816,6 +816,21 @@ fn sequence_images(threads: usize, from: u32, to: u32) -> Vec<Vec<[f32; 3]>> {
         frames_per_image: 2,
         seed: 7,
     };
+    render_sequence(&mut w, &sequence, from, to, |w| {
+        assert_eq!(w.film().frames(), 2);
+        pixels(w)
+    })
+}
+
+/// Images `from..to` of `sequence` in `w`, after skipping the images before `from`,
+/// each read by `read` once rendered.
+fn render_sequence<T>(
+    w: &mut TestWorld,
+    sequence: &sylva_systems::animation::Sequence,
+    from: u32,
+    to: u32,
+    mut read: impl FnMut(&TestWorld) -> T,
+) -> Vec<T> {
     sequence.skip(&mut w.world, 0, from.saturating_sub(1));
     let camera = w.camera;
     (from..to)
@@ -829,8 +844,7 @@ fn sequence_images(threads: usize, from: u32, to: u32) -> Vec<Vec<[f32; 3]>> {
                 |_, _| Flow::Continue,
             );
             assert_eq!(stopped, Stopped::Frames);
-            assert_eq!(w.film().frames(), 2);
-            pixels(&w)
+            read(w)
         })
         .collect()
 }
@@ -891,23 +905,11 @@ fn path_images(from: u32, to: u32) -> Vec<(Vec<[f32; 3]>, Transform, f32)> {
         frames_per_image: 1,
         seed: 3,
     };
-    sequence.skip(&mut w.world, 0, from.saturating_sub(1));
-    let camera = w.camera;
-    (from..to)
-        .map(|index| {
-            sequence.render_image(
-                &mut w.world,
-                &mut w.schedule,
-                camera,
-                index,
-                &StopAt::default(),
-                |_, _| Flow::Continue,
-            );
-            let pose = *w.world.get::<Transform>(camera).unwrap();
-            let fov = w.world.get::<Camera>(camera).unwrap().vertical_fov;
-            (pixels(&w), pose, fov)
-        })
-        .collect()
+    render_sequence(&mut w, &sequence, from, to, |w| {
+        let pose = *w.world.get::<Transform>(w.camera).unwrap();
+        let fov = w.world.get::<Camera>(w.camera).unwrap().vertical_fov;
+        (pixels(w), pose, fov)
+    })
 }
 
 #[test]
