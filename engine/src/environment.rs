@@ -72,6 +72,14 @@ pub fn direction_to_uv(d: Vec3) -> (f32, f32) {
 }
 
 impl EnvironmentMap {
+    /// Feeds the map's size and texels to `hash`.
+    pub(crate) fn hash_into(&self, hash: &mut crate::fingerprint::Fingerprint) {
+        hash.u32(self.width).u32(self.height);
+        for texel in &self.texels {
+            hash.f32(texel.x).f32(texel.y).f32(texel.z);
+        }
+    }
+
     /// A map from row-major texels, top row (zenith) first. Texels that are NaN,
     /// infinite or negative are set to zero; the second value counts them.
     pub fn new(

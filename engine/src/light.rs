@@ -62,6 +62,18 @@ pub struct LightSet {
 }
 
 impl LightSet {
+    /// A hash of every light: directions and colours, the sky, and an environment
+    /// map's texels and virtual lights (a cluster's ranks compare it before they render).
+    pub fn content_hash(&self) -> u64 {
+        let mut hash = crate::fingerprint::Fingerprint::new("light set v1");
+        hash.text(&format!("{:?} {:?}", self.directional, self.sky));
+        if let Some(environment) = &self.environment {
+            environment.map.hash_into(&mut hash);
+            hash.text(&format!("{:?}", environment.lights));
+        }
+        hash.finish()
+    }
+
     /// Radiance of the environment seen along `d`.
     #[inline]
     pub fn environment(&self, d: Vec3A) -> Vec3A {

@@ -639,6 +639,35 @@ impl Default for ShaderTable {
 }
 
 impl ShaderTable {
+    /// A hash of every shader's settings and texture texels: equal tables give equal
+    /// hashes on any machine (a cluster's ranks compare it before they render).
+    pub fn content_hash(&self) -> u64 {
+        let mut hash = crate::fingerprint::Fingerprint::new("shader table v1");
+        for shader in self.shaders.iter().chain([&self.fallback]) {
+            let Shader {
+                id,
+                base_color,
+                texture,
+                uv_transform,
+                alpha_cutoff,
+                double_sided,
+                emission,
+                transmission,
+            } = shader;
+            hash.text(&format!(
+                "{id:?} {base_color:?} {uv_transform:?} {alpha_cutoff:?} {double_sided} {emission:?} {transmission:?}"
+            ));
+            if let Some(texture) = texture {
+                hash.u32(texture.width).u32(texture.height);
+                hash.text(&format!("{:?}", texture.wrap));
+                for texel in &texture.texels {
+                    hash.bytes(texel);
+                }
+            }
+        }
+        hash.finish()
+    }
+
     /// Packs shaders by id; a later shader with the same id replaces an earlier one.
     pub fn new(shaders: Vec<Shader>) -> Self {
         let fallback = Shader::color(ShaderId(u32::MAX), Vec3::splat(0.5));

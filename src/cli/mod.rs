@@ -2,6 +2,7 @@
 //! tracing, output-path checks, durations, Ctrl-C, number formatting.
 
 pub mod animate;
+pub mod cluster;
 pub mod compare;
 pub mod converge;
 pub mod info;

@@ -1,6 +1,7 @@
 //! `sylva render`: a scene's frames refined progressively into a PNG or EXR, with
 //! snapshots, checkpoints and the summary of what was traced.
 
+use super::cluster::{ClusterArgs, Node};
 use super::profile::CliProfile;
 use super::*;
 use indicatif::{ProgressBar, ProgressStyle};
@@ -8,6 +9,7 @@ use std::time::Instant;
 use sylva::engine::discontinuity::{DiscontinuityFilter, FilteredImage};
 use sylva::engine::film::Tile;
 use sylva::scenes::SceneStats;
+use sylva::systems::cluster::Cluster;
 use sylva::systems::shown_film;
 
 /// Parses `NEAR,FAR,DEPTH_NEAR,DEPTH_FAR[,WEIGHT]` into a checked transparency curve.
@@ -104,6 +106,11 @@ pub(crate) struct RenderArgs {
     /// Save the exact accumulation state at the end, to resume later with --resume.
     #[arg(long, value_name = "FILE")]
     checkpoint: Option<PathBuf>,
+    /// Also write the image and the checkpoint (--checkpoint, or OUT.checkpoint) every
+    /// DURATION while refining, so a crash loses at most that much work [default: 30s
+    /// under mpirun, where a rank that dies ends the whole run; else off].
+    #[arg(long, value_name = "DURATION", allow_hyphen_values = true, value_parser = parse_duration)]
+    checkpoint_every: Option<Duration>,
     /// Continue a checkpoint (same scene and settings): the result is bit for bit what
     /// one uninterrupted run would give.
     #[arg(long, value_name = "FILE")]
@@ -132,6 +139,8 @@ pub(crate) struct RenderArgs {
     /// No progress bar or summary.
     #[arg(long, short)]
     quiet: bool,
+    #[command(flatten)]
+    cluster: ClusterArgs,
 }
 
 /// What an output image records about how it was made (PNG tEXt / EXR attributes).
@@ -236,11 +245,20 @@ fn snapshot_path(out: &Path, frames: u32) -> PathBuf {
     out.with_file_name(format!("{stem}.f{frames:06}.{extension}"))
 }
 
-/// Runs `sylva render`.
-pub(crate) fn run(args: RenderArgs) -> Result<()> {
-    check_output_path(&args.out)?;
-    check_exposure(args.exposure)?;
-    let _trace_guard = init_tracing(args.trace.as_deref());
+/// What every rank builds before rendering: the world with its camera and film, and
+/// what the summary and the checkpoint need.
+struct Loaded {
+    world: World,
+    camera: Entity,
+    width: u32,
+    quality: Quality,
+    built: Built,
+    fingerprint: u64,
+    resumed_frames: u32,
+}
+
+/// Builds the scene, sizes and sets up the camera, and loads the checkpoint to resume.
+fn load(args: &RenderArgs) -> Result<Loaded> {
     let mut world = World::new();
     let (scene, width, environment) = build_framed(
         &mut world,
@@ -252,50 +270,127 @@ pub(crate) fn run(args: RenderArgs) -> Result<()> {
             exposure: args.exposure,
         },
     )?;
-    let quality = quality(&args);
-    let stats = scene.stats();
-    let (generate_time, blas_time) = (scene.generate_time, scene.blas_time);
+    let quality = quality(args);
+    let built = Built {
+        stats: scene.stats(),
+        generate_time: scene.generate_time,
+        blas_time: scene.blas_time,
+    };
     let spawned = spawn(&mut world, scene);
     if let Some(environment) = environment {
         world.spawn(environment);
     }
     quality.apply(&mut world, spawned.camera);
-    let spp = quality.samples_per_pixel;
-    let fingerprint = checkpoint_fingerprint(&args, width, &quality);
+    let fingerprint = checkpoint_fingerprint(args, width, &quality);
     if let Some(path) = &args.resume {
         let film = Film::read_checkpoint(path, fingerprint)?;
         world.entity_mut(spawned.camera).insert(film);
     }
     let resumed_frames = world.get::<Film>(spawned.camera).map_or(0, Film::frames);
-    let target_frames = args.frames.unwrap_or(1);
-    if args.time.is_none() && target_frames <= resumed_frames {
+    if args.time.is_none() && args.frames.unwrap_or(1) <= resumed_frames {
         bail!("the checkpoint already holds {resumed_frames} frames; ask for more with --frames");
     }
+    Ok(Loaded {
+        world,
+        camera: spawned.camera,
+        width,
+        quality,
+        built,
+        fingerprint,
+        resumed_frames,
+    })
+}
 
-    let mut profile = CliProfile::start(&mut world, args.profile.as_deref())?;
-    let bar = progress_bar(&args, width, target_frames.saturating_sub(resumed_frames));
+/// Runs `sylva render`: alone, or as one rank of an MPI run (rank 0 writes).
+pub(crate) fn run(args: RenderArgs) -> Result<()> {
+    check_output_path(&args.out)?;
+    check_exposure(args.exposure)?;
+    let mut node = Node::join(&args.cluster)?;
+    let result = render(&args, &mut node);
+    node.end(result)
+}
+
+/// `sylva render` on this node.
+fn render(args: &RenderArgs, node: &mut Node) -> Result<()> {
+    let _trace_guard = init_tracing(node.trace_path(args.trace.as_deref()).as_deref());
+    let interrupted = interrupt_flag();
+    let (loaded, cluster) = node.agree(load(args), &interrupted)?;
+    let Loaded {
+        mut world,
+        camera,
+        width,
+        quality,
+        built,
+        fingerprint,
+        resumed_frames,
+    } = loaded;
+    if let Some(cluster) = cluster {
+        world.insert_resource(cluster);
+    }
+    let leads = node.leads();
+    let spp = quality.samples_per_pixel;
+    let target_frames = args.frames.unwrap_or(1);
+
+    let mut profile = if leads {
+        CliProfile::start(&mut world, args.profile.as_deref())?
+    } else {
+        None
+    };
+    let bar = progress_bar(
+        args,
+        width,
+        target_frames.saturating_sub(resumed_frames),
+        !leads,
+    );
     let tick = bar.clone();
     world.insert_resource(TileProgress(Some(Arc::new(move |_| tick.inc(1)))));
 
     let start = Instant::now();
     let mut schedule = frame_schedule();
-    let interrupted = interrupt_flag();
-    let stop = StopAt {
-        frames: if args.time.is_some() {
-            args.frames
-        } else {
-            Some(target_frames)
+    let stop = node.stop_at(
+        StopAt {
+            frames: if args.time.is_some() {
+                args.frames
+            } else {
+                Some(target_frames)
+            },
+            budget: args.time,
+            interrupt: Some(interrupted.clone()),
         },
-        budget: args.time,
-        interrupt: Some(interrupted.clone()),
-    };
+        &world,
+    );
     let mut snapshot_failure = None;
+    let checkpoint_path = args
+        .checkpoint
+        .clone()
+        .unwrap_or_else(|| args.out.with_extension("checkpoint"));
+    let checkpoint_every = args
+        .checkpoint_every
+        .or(node.is_cluster().then_some(Duration::from_secs(30)));
+    let mut last_save = Instant::now();
     let (stopped, _) = refine(
         &mut world,
         &mut schedule,
-        spawned.camera,
+        camera,
         &stop,
         |world, progress| {
+            if !leads {
+                return Flow::Continue;
+            }
+            if let Some(every) = checkpoint_every
+                && last_save.elapsed() >= every
+            {
+                last_save = Instant::now();
+                let film = world.get::<Film>(camera).expect("cameras have films");
+                let metadata = image_metadata(args, film, width, &quality);
+                let saved = shown_film(film, world.get::<FilteredImage>(camera))
+                    .write_with(&args.out, args.exposure, &metadata)
+                    .and_then(|()| film.write_checkpoint(&checkpoint_path, fingerprint));
+                if let Err(error) = saved {
+                    snapshot_failure = Some(error);
+                    return Flow::Stop;
+                }
+            }
             if let Some(profile) = &mut profile {
                 profile.record(world);
             }
@@ -309,13 +404,14 @@ pub(crate) fn run(args: RenderArgs) -> Result<()> {
             if let Some(every) = args.snapshot_every
                 && frames.is_multiple_of(every)
             {
-                let film = world
-                    .get::<Film>(spawned.camera)
-                    .expect("cameras have films");
-                let metadata = image_metadata(&args, film, width, &quality);
+                let film = world.get::<Film>(camera).expect("cameras have films");
+                let metadata = image_metadata(args, film, width, &quality);
                 let writing = Instant::now();
-                let written = shown_film(film, world.get::<FilteredImage>(spawned.camera))
-                    .write_with(&snapshot_path(&args.out, frames), args.exposure, &metadata);
+                let written = shown_film(film, world.get::<FilteredImage>(camera)).write_with(
+                    &snapshot_path(&args.out, frames),
+                    args.exposure,
+                    &metadata,
+                );
                 if let Some(profile) = &mut profile {
                     profile.add_write(writing.elapsed());
                 }
@@ -327,12 +423,26 @@ pub(crate) fn run(args: RenderArgs) -> Result<()> {
             Flow::Continue
         },
     );
+    if !leads {
+        // A worker's film holds only its own tiles: rank 0 writes the image.
+        return match world.get_resource::<Cluster>().and_then(Cluster::failure) {
+            Some(failure) => node.fail_with(failure),
+            None => Ok(()),
+        };
+    }
     if let Some(error) = snapshot_failure {
+        if node.is_cluster() {
+            if let Some(mut cluster) = world.get_resource_mut::<Cluster>() {
+                cluster.abandon(&error.to_string());
+            }
+            node.fail(&error.to_string());
+        }
         return Err(error.into());
     }
-    if stopped == Stopped::Interrupted {
+    let cluster_failure = node.end_frames(&mut world);
+    if stopped == Stopped::Interrupted && cluster_failure.is_none() {
         bar.finish_and_clear();
-        let frames = world.get::<Film>(spawned.camera).map_or(0, Film::frames);
+        let frames = world.get::<Film>(camera).map_or(0, Film::frames);
         eprintln!(
             "interrupted: writing the {frames} frames accumulated so far (Ctrl-C again to quit without writing)"
         );
@@ -341,11 +451,18 @@ pub(crate) fn run(args: RenderArgs) -> Result<()> {
     bar.finish_and_clear();
 
     let film = world
-        .get::<Film>(spawned.camera)
+        .get::<Film>(camera)
         .ok_or_else(|| anyhow::anyhow!("the camera has no film"))?;
-    let metadata = image_metadata(&args, film, width, &quality);
+    if let Some(failure) = &cluster_failure
+        && film.frames() == 0
+    {
+        node.fail(&format!(
+            "{failure} (no frame was complete: nothing written)"
+        ));
+    }
+    let metadata = image_metadata(args, film, width, &quality);
     let writing = Instant::now();
-    shown_film(film, world.get::<FilteredImage>(spawned.camera)).write_with(
+    shown_film(film, world.get::<FilteredImage>(camera)).write_with(
         &args.out,
         args.exposure,
         &metadata,
@@ -353,14 +470,38 @@ pub(crate) fn run(args: RenderArgs) -> Result<()> {
     if let Some(profile) = &mut profile {
         profile.add_write(writing.elapsed());
     }
-    if let Some(path) = &args.checkpoint {
+    let interrupted = interrupted.load(Ordering::SeqCst);
+    // A cluster run cut short keeps a checkpoint even when none was asked for: a signal
+    // there is Ctrl-C or mpirun ending the run because a rank died.
+    let checkpoint = args.checkpoint.clone().or_else(|| {
+        (node.is_cluster() && (interrupted || cluster_failure.is_some()))
+            .then(|| checkpoint_path.clone())
+    });
+    if let Some(path) = &checkpoint {
         film.write_checkpoint(path, fingerprint)?;
     }
-    if interrupted.load(Ordering::SeqCst) {
-        eprintln!("wrote {}", args.out.display());
+    if let Some(failure) = cluster_failure {
+        eprintln!(
+            "wrote the {} frames rendered before the failure to {} and {} (continue with --resume)",
+            film.frames(),
+            args.out.display(),
+            checkpoint.as_deref().unwrap_or(Path::new("")).display()
+        );
+        node.fail(&failure);
+    }
+    if interrupted {
+        match (&checkpoint, node.is_cluster()) {
+            (Some(path), true) => eprintln!(
+                "wrote {} and {} (a rank that died is named by mpirun; continue with --resume)",
+                args.out.display(),
+                path.display()
+            ),
+            _ => eprintln!("wrote {}", args.out.display()),
+        }
         if let Some(profile) = profile.take() {
             profile.finish(true);
         }
+        // Without MPI_Finalize: it would wait for ranks that may be gone.
         std::process::exit(130);
     }
     if film.rejected_samples() > 0 {
@@ -370,12 +511,10 @@ pub(crate) fn run(args: RenderArgs) -> Result<()> {
         );
     }
     if !args.quiet {
-        let built = Built {
-            stats,
-            generate_time,
-            blas_time,
-        };
-        println!("{}", summary(&args, width, spp, film, &world, &built, wall));
+        println!("{}", summary(args, width, spp, film, &world, &built, wall));
+        if let Some(line) = node.summary(&world) {
+            println!("{line}");
+        }
     }
     if let Some(profile) = profile {
         profile.finish(args.quiet);
@@ -440,14 +579,14 @@ fn summary(
 
 /// A bar over the tiles of `frames` frames, or a spinner for a time budget; hidden with
 /// --quiet.
-fn progress_bar(args: &RenderArgs, width: u32, frames: u32) -> ProgressBar {
+fn progress_bar(args: &RenderArgs, width: u32, frames: u32, hidden: bool) -> ProgressBar {
     let tiles = Tile::grid(
         width,
         args.height,
         sylva::engine::RenderParams::default().tile_size,
     )
     .len() as u64;
-    let bar = if args.quiet {
+    let bar = if args.quiet || hidden {
         ProgressBar::hidden()
     } else if args.time.is_some() {
         ProgressBar::new_spinner()

@@ -29,6 +29,7 @@
 //! works, so the cores are not oversubscribed.
 
 pub mod animation;
+pub mod cluster;
 pub mod converge;
 pub mod embed;
 pub mod live;

@@ -1,5 +1,6 @@
 //! The systems of the frame schedule and their run conditions.
 
+use crate::cluster::{Cluster, FrameChecks};
 use crate::profile::{FrameProfiler, ProfiledSystem};
 use crate::{
     BuildSettings, FrameCancel, RenderPool, RenderSeed, RenderStats, TileProgress, TopLevelState,
@@ -19,7 +20,9 @@ use sylva_engine::interleave::{LightInterleave, LightSubsets};
 use sylva_engine::light::{DirectionalLight, LightSet, SkyLight};
 use sylva_engine::node_animation::NodeAnimation;
 use sylva_engine::opacity::OpacityMaps;
-use sylva_engine::render::{FramePlan, RenderParams, RenderScene, render_frame_unless};
+use sylva_engine::render::{
+    FramePlan, RenderParams, RenderScene, render_frame_unless, render_tile,
+};
 use sylva_engine::sampling::mix64;
 use sylva_engine::shading::{Shader, ShaderTable};
 use sylva_engine::sway::{AnimationClock, RestPose, Sway, Wind};
@@ -469,6 +472,7 @@ pub fn render_tiles(
     mut stats: ResMut<RenderStats>,
     mut restart_owed: Local<HashSet<Entity>>,
     profiler: Res<FrameProfiler>,
+    (mut cluster, mut cluster_scene): (Option<ResMut<Cluster>>, Local<Option<u64>>),
 ) {
     let _timer = profiler.time(ProfiledSystem::RenderTiles);
     let _span = tracing::info_span!("render_tiles").entered();
@@ -490,6 +494,11 @@ pub fn render_tiles(
             callback(tile);
         }
     };
+    if cluster.is_some() && (cluster_scene.is_none() || scene_changed) {
+        *cluster_scene = Some(crate::cluster::scene_hash(
+            &library, &top_level, &shaders, &lights,
+        ));
+    }
     let mut frame_stats = sylva_engine::bvh::TraversalStats::default();
     let mut cancelled = false;
     for (entity, (camera, transform, plan, film, mut frame)) in &mut cameras {
@@ -505,16 +514,35 @@ pub fn render_tiles(
         let frame_index = if restart { 0 } else { film.frames() };
         let view = CameraView::new(&camera, &origin.relative(transform.to_affine()));
         let params = RenderParams::for_camera(&camera, seed.0).with_plan(&plan);
-        let rendered = pool.install(|| {
-            render_frame_unless(
-                &scene,
-                &view,
-                &params,
-                frame_index,
-                &on_tile,
-                cancel.0.as_deref(),
-            )
-        });
+        let rendered = match cluster.as_deref_mut() {
+            Some(cluster) => {
+                let checks = FrameChecks {
+                    frame: frame_index,
+                    scene: cluster_scene.unwrap_or_default(),
+                    view: crate::cluster::view_hash(&view, &params),
+                };
+                let tiles = Tile::grid(view.width(), view.height(), params.tile_size);
+                cluster.render_frame(
+                    &pool.0,
+                    view.width(),
+                    view.height(),
+                    &tiles,
+                    checks,
+                    &|tile| render_tile(&scene, &view, &params, tile, frame_index),
+                    &on_tile,
+                )
+            }
+            None => pool.install(|| {
+                render_frame_unless(
+                    &scene,
+                    &view,
+                    &params,
+                    frame_index,
+                    &on_tile,
+                    cancel.0.as_deref(),
+                )
+            }),
+        };
         match rendered {
             Some(rendered) => {
                 *frame = rendered;

@@ -1,0 +1,357 @@
+//! `sylva render` under `mpirun` (feature `mpi`; needs Open MPI's `mpirun`): images bit
+//! for bit those of one process for any ranks and threads, checkpoints that resume on
+//! other rank counts, and every failure — a different scene on one rank, a scene one
+//! rank cannot load, a rank killed mid-run, Ctrl-C — a clear end in bounded time.
+#![cfg(feature = "mpi")]
+
+use std::path::{Path, PathBuf};
+use std::process::{Child, Command, Output, Stdio};
+use std::sync::Mutex;
+use std::time::{Duration, Instant};
+
+/// One mpirun at a time: each uses every core of the machine.
+static MPIRUN: Mutex<()> = Mutex::new(());
+
+const SYLVA: &str = env!("CARGO_BIN_EXE_sylva");
+
+fn temp_dir(name: &str) -> PathBuf {
+    let dir = std::env::temp_dir().join(format!("sylva-mpi-{name}-{}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&dir);
+    std::fs::create_dir_all(&dir).unwrap();
+    dir
+}
+
+/// `mpirun` with one app context per entry (ranks, `sylva` arguments).
+fn mpirun_command(contexts: &[(usize, Vec<String>)]) -> Command {
+    let mut command = Command::new("mpirun");
+    command.args(["--allow-run-as-root", "--oversubscribe"]);
+    for (i, (ranks, args)) in contexts.iter().enumerate() {
+        if i > 0 {
+            command.arg(":");
+        }
+        command.args(["-np", &ranks.to_string(), SYLVA]).args(args);
+    }
+    command
+}
+
+/// Runs to the end, at most `limit`; panics when it takes longer.
+fn run_bounded(mut command: Command, limit: Duration) -> (Output, Duration) {
+    let start = Instant::now();
+    let mut child = command
+        .stdout(Stdio::piped())
+        .stderr(Stdio::piped())
+        .spawn()
+        .expect("mpirun runs (install openmpi-bin)");
+    wait_bounded(&mut child, start, limit);
+    (child.wait_with_output().unwrap(), start.elapsed())
+}
+
+fn wait_bounded(child: &mut Child, start: Instant, limit: Duration) {
+    while child.try_wait().unwrap().is_none() {
+        if start.elapsed() > limit {
+            let _ = child.kill();
+            panic!("still running after {limit:?}");
+        }
+        std::thread::sleep(Duration::from_millis(50));
+    }
+}
+
+fn args(list: &[&str]) -> Vec<String> {
+    list.iter().map(|s| s.to_string()).collect()
+}
+
+/// `sylva render` alone.
+fn alone(list: &[&str]) {
+    let output = Command::new(SYLVA).args(list).output().unwrap();
+    assert!(
+        output.status.success(),
+        "{}",
+        String::from_utf8_lossy(&output.stderr)
+    );
+}
+
+fn bytes(path: &Path) -> Vec<u8> {
+    std::fs::read(path).unwrap_or_else(|e| panic!("{}: {e}", path.display()))
+}
+
+#[test]
+fn still_and_progressive_images_are_one_process_images_bit_for_bit_on_1_2_3_ranks() {
+    let _one = MPIRUN.lock().unwrap_or_else(|e| e.into_inner());
+    let dir = temp_dir("same");
+    let renders: [(&str, &[&str]); 2] = [
+        (
+            "still",
+            &["--width", "96", "--height", "72", "--preset", "still"],
+        ),
+        (
+            "progressive",
+            &[
+                "--scene",
+                "forest",
+                "--width",
+                "96",
+                "--height",
+                "72",
+                "--preset",
+                "interactive",
+                "--frames",
+                "4",
+            ],
+        ),
+    ];
+    for (name, settings) in renders {
+        let reference = dir.join(format!("{name}.exr"));
+        let mut list = vec!["render", "-q", "--out", reference.to_str().unwrap()];
+        list.extend_from_slice(settings);
+        alone(&list);
+        for (ranks, threads) in [(1, 1), (2, 1), (3, 1), (2, 2)] {
+            let out = dir.join(format!("{name}_{ranks}x{threads}.exr"));
+            let mut list = args(&["render", "--threads", &threads.to_string()]);
+            list.extend(args(&["--out", out.to_str().unwrap()]));
+            list.extend(args(settings));
+            let (output, _) =
+                run_bounded(mpirun_command(&[(ranks, list)]), Duration::from_secs(120));
+            let stdout = String::from_utf8_lossy(&output.stdout);
+            assert!(
+                output.status.success(),
+                "{name} {ranks}x{threads}: {}",
+                String::from_utf8_lossy(&output.stderr)
+            );
+            assert!(
+                bytes(&out) == bytes(&reference),
+                "{name}: {ranks} ranks × {threads} threads differ from one process"
+            );
+            // Only rank 0 prints; in a cluster run it says what the others did.
+            assert_eq!(stdout.matches(" -> ").count(), 1, "{stdout}");
+            assert_eq!(
+                stdout.contains(&format!("cluster: {ranks} ranks")),
+                ranks > 1,
+                "{stdout}"
+            );
+        }
+    }
+}
+
+#[test]
+fn a_checkpoint_resumes_on_another_number_of_ranks() {
+    let _one = MPIRUN.lock().unwrap_or_else(|e| e.into_inner());
+    let dir = temp_dir("resume");
+    let settings = [
+        "--scene",
+        "forest",
+        "--width",
+        "80",
+        "--height",
+        "60",
+        "--preset",
+        "interactive",
+    ];
+    let reference = dir.join("reference.exr");
+    let mut list = vec![
+        "render",
+        "-q",
+        "--frames",
+        "4",
+        "--out",
+        reference.to_str().unwrap(),
+    ];
+    list.extend_from_slice(&settings);
+    alone(&list);
+    let checkpoint = dir.join("half.checkpoint");
+    let (half, resumed) = (dir.join("half.exr"), dir.join("resumed.exr"));
+    for (ranks, frames, extra) in [
+        (3, "2", ["--checkpoint", checkpoint.to_str().unwrap()]),
+        (2, "4", ["--resume", checkpoint.to_str().unwrap()]),
+    ] {
+        let out = if extra[0] == "--checkpoint" {
+            &half
+        } else {
+            &resumed
+        };
+        let mut list = args(&["render", "-q", "--threads", "1", "--frames", frames]);
+        list.extend(args(&extra));
+        list.extend(args(&["--out", out.to_str().unwrap()]));
+        list.extend(args(&settings));
+        let (output, _) = run_bounded(mpirun_command(&[(ranks, list)]), Duration::from_secs(120));
+        assert!(
+            output.status.success(),
+            "{}",
+            String::from_utf8_lossy(&output.stderr)
+        );
+    }
+    assert!(bytes(&resumed) == bytes(&reference));
+}
+
+/// Three ranks; rank 1 is given `rank_1_extra` on top of the others' arguments.
+fn with_rank_1_given(dir: &Path, rank_1_extra: &[&str]) -> (Output, Duration) {
+    let out = dir.join("out.exr");
+    let common = args(&[
+        "render",
+        "--threads",
+        "1",
+        "--width",
+        "64",
+        "--height",
+        "48",
+        "--out",
+        out.to_str().unwrap(),
+    ]);
+    let mut odd = common.clone();
+    odd.extend(args(rank_1_extra));
+    run_bounded(
+        mpirun_command(&[(1, common.clone()), (1, odd), (1, common)]),
+        Duration::from_secs(60),
+    )
+}
+
+#[test]
+fn a_rank_that_would_render_another_scene_is_refused_by_name() {
+    let _one = MPIRUN.lock().unwrap_or_else(|e| e.into_inner());
+    let dir = temp_dir("mismatch");
+    // Translucency changes only the shaders: the hash must cover them too.
+    let (output, took) = with_rank_1_given(&dir, &["--translucency", "off"]);
+    let stderr = String::from_utf8_lossy(&output.stderr);
+    assert!(!output.status.success());
+    assert!(
+        stderr.contains("error: rank 1 would render a different scene"),
+        "{stderr}"
+    );
+    assert_eq!(stderr.matches("error:").count(), 1, "said once: {stderr}");
+    assert!(!dir.join("out.exr").exists(), "no frame was complete");
+    assert!(took < Duration::from_secs(30), "took {took:?}");
+}
+
+#[test]
+fn a_rank_that_cannot_load_the_scene_is_named_with_its_error() {
+    let _one = MPIRUN.lock().unwrap_or_else(|e| e.into_inner());
+    let dir = temp_dir("load");
+    let missing = dir.join("missing.toml");
+    let (output, took) = with_rank_1_given(&dir, &["--scene", missing.to_str().unwrap()]);
+    let stderr = String::from_utf8_lossy(&output.stderr);
+    assert!(!output.status.success());
+    assert!(
+        stderr.contains("error: rank 1 could not build the scene: ")
+            && stderr.contains("missing.toml"),
+        "{stderr}"
+    );
+    assert!(took < Duration::from_secs(30), "took {took:?}");
+}
+
+/// The pid of rank `rank` of the run writing `out`.
+fn rank_pid(rank: usize, out: &Path) -> Option<u32> {
+    let wanted = format!("OMPI_COMM_WORLD_RANK={rank}");
+    std::fs::read_dir("/proc")
+        .ok()?
+        .flatten()
+        .find_map(|entry| {
+            let pid: u32 = entry.file_name().to_str()?.parse().ok()?;
+            let cmdline = std::fs::read(entry.path().join("cmdline")).ok()?;
+            let environ = std::fs::read(entry.path().join("environ")).ok()?;
+            let has =
+                |bytes: &[u8], text: &str| bytes.split(|&b| b == 0).any(|s| s == text.as_bytes());
+            (has(&cmdline, out.to_str()?) && has(&cmdline, SYLVA) && has(&environ, &wanted))
+                .then_some(pid)
+        })
+}
+
+/// A long progressive run on 3 ranks with a checkpoint every second; returns the child
+/// once its first checkpoint is written, and the image and checkpoint paths.
+fn long_run(dir: &Path) -> (Child, PathBuf, PathBuf) {
+    let out = dir.join("long.exr");
+    let list = args(&[
+        "render",
+        "--threads",
+        "1",
+        "--scene",
+        "forest",
+        "--width",
+        "96",
+        "--height",
+        "72",
+        "--preset",
+        "interactive",
+        "--frames",
+        "1000000",
+        "--checkpoint-every",
+        "1s",
+        "--out",
+        out.to_str().unwrap(),
+    ]);
+    let child = mpirun_command(&[(3, list)])
+        .stdout(Stdio::piped())
+        .stderr(Stdio::piped())
+        .spawn()
+        .expect("mpirun runs");
+    let checkpoint = out.with_extension("checkpoint");
+    let start = Instant::now();
+    while !checkpoint.exists() {
+        assert!(start.elapsed() < Duration::from_secs(90), "no checkpoint");
+        std::thread::sleep(Duration::from_millis(50));
+    }
+    (child, out, checkpoint)
+}
+
+/// The checkpoint continues in a single process for half a second.
+fn resumes(checkpoint: &Path, dir: &Path) {
+    alone(&[
+        "render",
+        "-q",
+        "--scene",
+        "forest",
+        "--width",
+        "96",
+        "--height",
+        "72",
+        "--preset",
+        "interactive",
+        "--time",
+        "500ms",
+        "--resume",
+        checkpoint.to_str().unwrap(),
+        "--out",
+        dir.join("continued.exr").to_str().unwrap(),
+    ]);
+}
+
+#[test]
+fn a_rank_killed_mid_run_ends_it_in_bounded_time_with_the_image_and_a_checkpoint() {
+    let _one = MPIRUN.lock().unwrap_or_else(|e| e.into_inner());
+    let dir = temp_dir("killed");
+    let (mut child, out, checkpoint) = long_run(&dir);
+    std::thread::sleep(Duration::from_millis(1500));
+    let pid = rank_pid(1, &out).expect("rank 1 is running");
+    let killed = Command::new("kill")
+        .args(["-KILL", &pid.to_string()])
+        .status()
+        .unwrap();
+    assert!(killed.success());
+    let start = Instant::now();
+    wait_bounded(&mut child, start, Duration::from_secs(30));
+    let output = child.wait_with_output().unwrap();
+    let stderr = String::from_utf8_lossy(&output.stderr);
+    assert!(!output.status.success());
+    assert!(stderr.contains("rank 1"), "the rank is named: {stderr}");
+    assert!(out.exists() && checkpoint.exists());
+    resumes(&checkpoint, &dir);
+}
+
+#[test]
+fn ctrl_c_on_mpirun_writes_the_image_and_a_checkpoint() {
+    let _one = MPIRUN.lock().unwrap_or_else(|e| e.into_inner());
+    let dir = temp_dir("interrupt");
+    let (mut child, out, checkpoint) = long_run(&dir);
+    std::fs::remove_file(&checkpoint).unwrap();
+    let interrupted = Command::new("kill")
+        .args(["-INT", &child.id().to_string()])
+        .status()
+        .unwrap();
+    assert!(interrupted.success());
+    let start = Instant::now();
+    wait_bounded(&mut child, start, Duration::from_secs(30));
+    let output = child.wait_with_output().unwrap();
+    let stderr = String::from_utf8_lossy(&output.stderr);
+    assert!(!output.status.success());
+    assert!(stderr.contains("interrupted: writing the "), "{stderr}");
+    assert!(out.exists() && checkpoint.exists(), "{stderr}");
+    resumes(&checkpoint, &dir);
+}
