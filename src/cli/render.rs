@@ -328,6 +328,13 @@ fn render(args: &RenderArgs, node: &mut Node) -> Result<()> {
         world.insert_resource(cluster);
     }
     let leads = node.leads();
+    if !leads {
+        // A worker's film holds only its own tiles and is never shown: filtering it
+        // would only keep the worker from the next frame.
+        world
+            .entity_mut(camera)
+            .remove::<(DiscontinuityFilter, FilteredImage)>();
+    }
     let spp = quality.samples_per_pixel;
     let target_frames = args.frames.unwrap_or(1);
 

@@ -13,6 +13,7 @@
 //! Every wait has a time limit: a rank that stops answering ends the run with a
 //! [`ClusterError`] naming it instead of a hang.
 
+pub mod model;
 #[cfg(feature = "mpi")]
 pub mod mpi;
 mod wire;
@@ -31,8 +32,28 @@ use sylva_engine::shading::ShaderTable;
 use sylva_engine::tlas::TopLevel;
 use wire::Message;
 
-/// How long a poll waits before it looks for messages again.
+/// How long a poll waits before it looks for messages again, when nothing else is to
+/// be done.
 const POLL: Duration = Duration::from_micros(200);
+
+/// How long rank 0's polling thread sleeps while its own threads render.
+const POLL_BUSY: Duration = Duration::from_millis(2);
+
+/// Runs a worker asks for beyond one per thread: its threads keep rendering while rank
+/// 0 takes a result and answers, which may take [`POLL_BUSY`].
+const RESERVE_RUNS: u32 = 2;
+
+/// The longest a worker sleeps while its threads render (it wakes when one is done).
+const WORKER_WAKE: Duration = Duration::from_millis(50);
+
+/// Tiles handed out together: consecutive in the grid, so fewer messages and wake-ups.
+const RUN_TILES: usize = 4;
+
+/// The grid indices of run `run` of a frame of `tiles` tiles.
+fn run_tiles(run: usize, tiles: usize) -> std::ops::Range<usize> {
+    let first = (run * RUN_TILES).min(tiles);
+    first..(first + RUN_TILES).min(tiles)
+}
 
 /// Moves messages between the ranks of a cluster run.
 pub trait Transport: Send + Sync {
@@ -366,8 +387,9 @@ impl Cluster {
         }
     }
 
-    /// Rank 0's side of a frame: its own threads take tiles from the same counter the
-    /// workers are served from. `None` when the stop flag was set (Ctrl-C) meanwhile.
+    /// Rank 0's side of a frame: its own threads take runs of tiles from the same
+    /// counter the workers are served from. `None` when the stop flag was set (Ctrl-C)
+    /// meanwhile.
     fn lead(
         &mut self,
         pool: &rayon::ThreadPool,
@@ -382,11 +404,14 @@ impl Cluster {
         let give_up = AtomicBool::new(false);
         let local_busy = AtomicUsize::new(pool.current_num_threads());
         let (sender, local) = mpsc::channel::<(usize, TileResult)>();
+        let runs = tiles.len().div_ceil(RUN_TILES);
         let mut lead = Lead {
             job,
             checks,
             tiles,
             next: &next,
+            runs,
+            owners: vec![None; runs],
             results: (0..tiles.len()).map(|_| None).collect(),
             received: 0,
             workers: vec![WorkerState::default(); self.size()],
@@ -396,16 +421,21 @@ impl Cluster {
                 let sender = sender.clone();
                 let (next, give_up, local_busy) = (&next, &give_up, &local_busy);
                 scope.spawn(move |_| {
-                    loop {
-                        let index = next.fetch_add(1, Ordering::Relaxed);
-                        if index >= tiles.len() || give_up.load(Ordering::Relaxed) {
+                    'runs: loop {
+                        let run = next.fetch_add(1, Ordering::Relaxed);
+                        if run >= runs {
                             break;
                         }
-                        let start = Instant::now();
-                        let result = render(tiles[index]);
-                        on_tile(&tiles[index], start.elapsed());
-                        if sender.send((index, result)).is_err() {
-                            break;
+                        for index in run_tiles(run, tiles.len()) {
+                            if give_up.load(Ordering::Relaxed) {
+                                break 'runs;
+                            }
+                            let start = Instant::now();
+                            let result = render(tiles[index]);
+                            on_tile(&tiles[index], start.elapsed());
+                            if sender.send((index, result)).is_err() {
+                                break 'runs;
+                            }
                         }
                     }
                     local_busy.fetch_sub(1, Ordering::Release);
@@ -448,8 +478,7 @@ impl Cluster {
         loop {
             let mut progressed = false;
             while let Ok((index, result)) = local.try_recv() {
-                lead.results[index] = Some(result);
-                lead.received += 1;
+                lead.store_local(index, result);
                 self.last_frame.tiles_here += 1;
                 progressed = true;
             }
@@ -476,11 +505,11 @@ impl Cluster {
                 continue;
             }
             if local_busy.load(Ordering::Acquire) > 0 {
-                if let Ok((index, result)) = local.recv_timeout(POLL) {
-                    lead.results[index] = Some(result);
-                    lead.received += 1;
-                    self.last_frame.tiles_here += 1;
-                }
+                // Rank 0's own threads are busy: look at the network every few
+                // milliseconds, not at every tile they finish (a worker holds runs in
+                // reserve, so it does not wait for the answer); each wake-up takes the
+                // core from a render thread.
+                std::thread::sleep(POLL_BUSY);
                 continue;
             }
             waiting_since.get_or_insert_with(Instant::now);
@@ -533,28 +562,37 @@ impl Cluster {
             }
             Message::Result {
                 job,
-                index,
-                nanos,
-                result,
+                first,
+                tiles,
                 want,
             } if job == lead.job => {
-                let index = index as usize;
-                let state = &lead.workers[rank];
-                if index >= lead.tiles.len()
-                    || lead.results[index].is_some()
-                    || state.outstanding == 0
-                    || result.tile != lead.tiles[index]
+                let first = first as usize;
+                let run = first / RUN_TILES;
+                let expected = run_tiles(run, lead.tiles.len());
+                if !first.is_multiple_of(RUN_TILES)
+                    || run >= lead.runs
+                    || lead.owners[run] != Some(rank)
+                    || tiles.len() != expected.len()
                 {
                     return Err(ClusterError::Protocol {
                         rank,
-                        problem: format!("tile {index} was not its to return"),
+                        problem: format!("tiles from {first} on were not its to return"),
                     });
                 }
-                on_tile(&lead.tiles[index], Duration::from_nanos(nanos));
-                lead.results[index] = Some(*result);
-                lead.received += 1;
+                lead.owners[run] = None;
+                for (index, (nanos, result)) in expected.zip(tiles) {
+                    if result.tile != lead.tiles[index] {
+                        return Err(ClusterError::Protocol {
+                            rank,
+                            problem: format!("tile {index} came back as another tile"),
+                        });
+                    }
+                    on_tile(&lead.tiles[index], Duration::from_nanos(nanos));
+                    lead.results[index] = Some(result);
+                    lead.received += 1;
+                    self.last_frame.tiles_elsewhere += 1;
+                }
                 lead.workers[rank].outstanding -= 1;
-                self.last_frame.tiles_elsewhere += 1;
                 self.assign(lead, rank, want)?;
             }
             Message::Fail { text } => return Err(ClusterError::Failed { rank, error: text }),
@@ -563,21 +601,23 @@ impl Cluster {
         Ok(())
     }
 
-    /// Gives `rank` up to `want` more tiles; tells it the frame is done once the
-    /// counter has run out and it has returned all it was given.
+    /// Gives `rank` up to `want` more runs of tiles; tells it the frame is done once
+    /// the counter has run out and it has returned all it was given.
     fn assign(&mut self, lead: &mut Lead, rank: usize, want: u32) -> Result<(), ClusterError> {
         let mut given = Vec::new();
         while given.len() < want as usize {
-            let index = lead.next.fetch_add(1, Ordering::Relaxed);
-            if index >= lead.tiles.len() {
+            let run = lead.next.fetch_add(1, Ordering::Relaxed);
+            if run >= lead.runs {
                 break;
             }
-            given.push(index as u32);
+            lead.owners[run] = Some(rank);
+            let tiles = run_tiles(run, lead.tiles.len());
+            given.push((tiles.start as u32, tiles.len() as u32));
         }
         let job = lead.job;
         if !given.is_empty() {
             lead.workers[rank].outstanding += given.len();
-            self.send(rank, &Message::Tiles { job, tiles: given })?;
+            self.send(rank, &Message::Tiles { job, runs: given })?;
         } else if lead.workers[rank].outstanding == 0 && !lead.workers[rank].done_sent {
             lead.workers[rank].done_sent = true;
             self.send(rank, &Message::Done { job })?;
@@ -586,7 +626,8 @@ impl Cluster {
     }
 
     /// A worker's side of a frame: say it is ready, render what rank 0 hands out,
-    /// return each tile as it finishes. `None` when rank 0 ended the run instead.
+    /// return each run of tiles as it finishes. `None` when rank 0 ended the run
+    /// instead.
     fn serve(
         &mut self,
         pool: &rayon::ThreadPool,
@@ -602,57 +643,49 @@ impl Cluster {
             &Message::Ready {
                 job,
                 checks,
-                want: threads as u32 + 1,
+                want: threads as u32 + RESERVE_RUNS,
             },
         )?;
-        let (sender, local) = mpsc::channel::<(usize, TileResult, u64)>();
+        type Run = (usize, Vec<(u64, TileResult)>);
+        let (sender, local) = mpsc::channel::<Run>();
         let mut mine = Vec::new();
         pool.in_place_scope(|scope| {
             let mut in_flight = 0usize;
             let mut done = false;
             let mut last_heard = Instant::now();
             let mut idle_since: Option<Instant> = Some(Instant::now());
+            let mut finished: Option<Run> = None;
             loop {
                 let mut progressed = false;
-                while let Ok((index, result, nanos)) = local.try_recv() {
-                    in_flight -= 1;
-                    progressed = true;
-                    self.last_frame.tiles_here += 1;
-                    let message = Message::Result {
-                        job,
-                        index: index as u32,
-                        nanos,
-                        result: Box::new(result),
-                        want: 1,
-                    };
-                    self.send(0, &message)?;
-                    if let Message::Result { result, .. } = message {
-                        mine.push(*result);
-                    }
-                }
                 while let Some((rank, message)) = self.receive()? {
                     progressed = true;
                     last_heard = Instant::now();
                     match message {
-                        Message::Tiles {
-                            job: j,
-                            tiles: given,
-                        } if j == job && rank == 0 => {
-                            for index in given {
-                                let index = index as usize;
-                                let Some(&tile) = tiles.get(index) else {
+                        Message::Tiles { job: j, runs } if j == job && rank == 0 => {
+                            for (first, count) in runs {
+                                let (first, count) = (first as usize, count as usize);
+                                let Some(run) = tiles.get(first..first.saturating_add(count))
+                                else {
                                     return Err(ClusterError::Protocol {
                                         rank,
-                                        problem: format!("tile {index} is not in the frame"),
+                                        problem: format!(
+                                            "tiles {first}..{} are not in the frame",
+                                            first.saturating_add(count)
+                                        ),
                                     });
                                 };
                                 in_flight += 1;
                                 let sender = sender.clone();
                                 scope.spawn(move |_| {
-                                    let start = Instant::now();
-                                    let result = render(tile);
-                                    let nanos = start.elapsed().as_nanos() as u64;
-                                    let _ = sender.send((index, result, nanos));
+                                    let rendered = run
+                                        .iter()
+                                        .map(|&tile| {
+                                            let start = Instant::now();
+                                            let result = render(tile);
+                                            (start.elapsed().as_nanos() as u64, result)
+                                        })
+                                        .collect();
+                                    let _ = sender.send((first, rendered));
                                 });
                             }
                         }
@@ -662,6 +695,23 @@ impl Cluster {
                             return Err(ClusterError::Failed { rank, error: text });
                         }
                         other => return Err(unexpected(rank, &other)),
+                    }
+                }
+                while let Some((first, rendered)) =
+                    finished.take().or_else(|| local.try_recv().ok())
+                {
+                    in_flight -= 1;
+                    progressed = true;
+                    self.last_frame.tiles_here += rendered.len() as u64;
+                    let message = Message::Result {
+                        job,
+                        first: first as u32,
+                        tiles: rendered,
+                        want: 1,
+                    };
+                    self.send(0, &message)?;
+                    if let Message::Result { tiles, .. } = message {
+                        mine.extend(tiles.into_iter().map(|(_, result)| result));
                     }
                 }
                 if in_flight > 0 {
@@ -681,12 +731,9 @@ impl Cluster {
                     continue;
                 }
                 if in_flight > 0 {
-                    if let Ok((index, result, nanos)) = local.recv_timeout(POLL) {
-                        // Put back for the loop above, which sends it.
-                        sender
-                            .send((index, result, nanos))
-                            .expect("this thread holds the receiver");
-                    }
+                    // Asleep until a run is done: rank 0's answers can wait for it, as
+                    // the worker asked for runs in reserve.
+                    finished = local.recv_timeout(WORKER_WAKE).ok();
                 } else {
                     self.check_silence(0, last_heard.elapsed(), 0)?;
                     std::thread::sleep(POLL);
@@ -777,10 +824,23 @@ struct Lead<'a> {
     job: u64,
     checks: FrameChecks,
     tiles: &'a [Tile],
+    /// The next run of tiles to hand out.
     next: &'a AtomicUsize,
+    /// Runs in the frame.
+    runs: usize,
+    /// The worker each run handed out and not yet back is with.
+    owners: Vec<Option<usize>>,
     results: Vec<Option<TileResult>>,
     received: usize,
     workers: Vec<WorkerState>,
+}
+
+impl Lead<'_> {
+    /// A tile rank 0's own threads rendered.
+    fn store_local(&mut self, index: usize, result: TileResult) {
+        self.results[index] = Some(result);
+        self.received += 1;
+    }
 }
 
 /// The hash every rank compares before a frame: the species BLASes (tree and slot

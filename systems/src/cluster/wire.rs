@@ -32,15 +32,15 @@ pub(crate) enum Message {
         checks: FrameChecks,
         want: u32,
     },
-    /// Tiles of job `job` for the worker, by their index in the frame's tile grid.
-    Tiles { job: u64, tiles: Vec<u32> },
-    /// A rendered tile of job `job` (the index in the grid), its render time, and how
-    /// many more tiles the worker can take.
+    /// Runs of tiles of job `job` for the worker: (first index in the frame's tile
+    /// grid, count).
+    Tiles { job: u64, runs: Vec<(u32, u32)> },
+    /// A rendered run of tiles of job `job` from grid index `first` on, each with its
+    /// render time in nanoseconds, and how many more runs the worker can take.
     Result {
         job: u64,
-        index: u32,
-        nanos: u64,
-        result: Box<TileResult>,
+        first: u32,
+        tiles: Vec<(u64, TileResult)>,
         want: u32,
     },
     /// No more tiles of job `job` for this worker: it has returned all it was given.
@@ -79,27 +79,30 @@ impl Message {
                 out.u64(checks.view);
                 out.u32(*want);
             }
-            Message::Tiles { job, tiles } => {
+            Message::Tiles { job, runs } => {
                 out.u8(3);
                 out.u64(*job);
-                out.u32(tiles.len() as u32);
-                for &t in tiles {
-                    out.u32(t);
+                out.u32(runs.len() as u32);
+                for &(first, count) in runs {
+                    out.u32(first);
+                    out.u32(count);
                 }
             }
             Message::Result {
                 job,
-                index,
-                nanos,
-                result,
+                first,
+                tiles,
                 want,
             } => {
                 out.u8(4);
                 out.u64(*job);
-                out.u32(*index);
-                out.u64(*nanos);
+                out.u32(*first);
                 out.u32(*want);
-                out.tile_result(result);
+                out.u32(tiles.len() as u32);
+                for (nanos, result) in tiles {
+                    out.u64(*nanos);
+                    out.tile_result(result);
+                }
             }
             Message::Done { job } => {
                 out.u8(5);
@@ -138,19 +141,31 @@ impl Message {
             3 => {
                 let job = input.u64()?;
                 let count = input.u32()? as usize;
-                if count > input.remaining() / 4 {
+                if count > input.remaining() / 8 {
                     return Err(Malformed);
                 }
-                let tiles = (0..count).map(|_| input.u32()).collect::<Result<_, _>>()?;
-                Message::Tiles { job, tiles }
+                let runs = (0..count)
+                    .map(|_| Ok((input.u32()?, input.u32()?)))
+                    .collect::<Result<_, _>>()?;
+                Message::Tiles { job, runs }
             }
-            4 => Message::Result {
-                job: input.u64()?,
-                index: input.u32()?,
-                nanos: input.u64()?,
-                want: input.u32()?,
-                result: Box::new(input.tile_result()?),
-            },
+            4 => {
+                let (job, first, want) = (input.u64()?, input.u32()?, input.u32()?);
+                let count = input.u32()? as usize;
+                // Each tile takes at least its header: refuse a count the bytes cannot hold.
+                if count > input.remaining() / 36 {
+                    return Err(Malformed);
+                }
+                let tiles = (0..count)
+                    .map(|_| Ok((input.u64()?, input.tile_result()?)))
+                    .collect::<Result<_, _>>()?;
+                Message::Result {
+                    job,
+                    first,
+                    tiles,
+                    want,
+                }
+            }
             5 => Message::Done { job: input.u64()? },
             6 => Message::Stop,
             7 => Message::Fail {
@@ -419,13 +434,12 @@ mod tests {
             },
             Message::Tiles {
                 job: 1 << 40,
-                tiles: vec![0, 5, u32::MAX],
+                runs: vec![(0, 4), (5, 1), (u32::MAX, 2)],
             },
             Message::Result {
                 job: 4,
-                index: 11,
-                nanos: 123_456,
-                result: Box::new(result.clone()),
+                first: 11,
+                tiles: vec![(123_456, result.clone()), (7, result.clone())],
                 want: 1,
             },
             Message::Done { job: 8 },
@@ -438,17 +452,20 @@ mod tests {
             let decoded = Message::decode(&message.encode()).expect("reads back");
             match (&message, &decoded) {
                 (
-                    Message::Result { result: a, .. },
+                    Message::Result { tiles: a, .. },
                     Message::Result {
-                        result: b,
+                        tiles: b,
                         job,
-                        index,
-                        nanos,
+                        first,
                         want,
                     },
                 ) => {
-                    assert!(same_bits(a, b));
-                    assert_eq!((*job, *index, *nanos, *want), (4, 11, 123_456, 1));
+                    assert_eq!(a.len(), b.len());
+                    for ((nanos_a, a), (nanos_b, b)) in a.iter().zip(b) {
+                        assert!(same_bits(a, b));
+                        assert_eq!(nanos_a, nanos_b);
+                    }
+                    assert_eq!((*job, *first, *want), (4, 11, 1));
                 }
                 _ => assert_eq!(decoded, message),
             }
@@ -459,9 +476,8 @@ mod tests {
     fn truncated_extended_and_unknown_messages_are_malformed() {
         let bytes = Message::Result {
             job: 1,
-            index: 2,
-            nanos: 3,
-            result: Box::new(tile_result()),
+            first: 2,
+            tiles: vec![(3, tile_result())],
             want: 1,
         }
         .encode();
