@@ -355,3 +355,45 @@ fn ctrl_c_on_mpirun_writes_the_image_and_a_checkpoint() {
     assert!(out.exists() && checkpoint.exists(), "{stderr}");
     resumes(&checkpoint, &dir);
 }
+
+#[test]
+fn animate_writes_one_process_images_on_3_ranks() {
+    let _one = MPIRUN.lock().unwrap_or_else(|e| e.into_inner());
+    let dir = temp_dir("animate");
+    let settings = [
+        "animate",
+        "-q",
+        "--seconds",
+        "0.5",
+        "--fps",
+        "8",
+        "--width",
+        "64",
+        "--height",
+        "48",
+        "--frames-per-image",
+        "2",
+    ];
+    let (alone_dir, cluster_dir) = (dir.join("alone"), dir.join("cluster"));
+    let pattern = |d: &Path| d.join("f_%02d.exr").to_str().unwrap().to_owned();
+    let mut list = settings.to_vec();
+    let alone_out = pattern(&alone_dir);
+    list.extend(["--out", &alone_out]);
+    alone(&list);
+    let mut list = args(&settings);
+    list.extend(args(&["--threads", "1", "--out", &pattern(&cluster_dir)]));
+    let (output, _) = run_bounded(mpirun_command(&[(3, list)]), Duration::from_secs(120));
+    assert!(
+        output.status.success(),
+        "{}",
+        String::from_utf8_lossy(&output.stderr)
+    );
+    for k in 0..4 {
+        let name = format!("f_{k:02}.exr");
+        assert!(
+            bytes(&alone_dir.join(&name)) == bytes(&cluster_dir.join(&name)),
+            "{name} differs"
+        );
+    }
+    assert!(!cluster_dir.join("f_04.exr").exists());
+}

@@ -2,6 +2,7 @@
 //! one image per 1/fps seconds, resumable after the last image written. The timing and
 //! the per-image refinement are `sylva_systems::animation::Sequence`.
 
+use super::cluster::{ClusterArgs, Node};
 use super::profile::CliProfile;
 use super::*;
 use indicatif::{ProgressBar, ProgressStyle};
@@ -9,6 +10,7 @@ use sylva::engine::discontinuity::FilteredImage;
 use sylva::scenes::editor;
 use sylva::systems::NodeAnimationPlayer;
 use sylva::systems::animation::Sequence;
+use sylva::systems::cluster::Cluster;
 use sylva::systems::shown_film;
 
 #[derive(Args, Debug)]
@@ -70,6 +72,20 @@ pub(crate) struct AnimateArgs {
     /// No progress bar or summary.
     #[arg(long, short)]
     quiet: bool,
+    #[command(flatten)]
+    cluster: ClusterArgs,
+}
+
+/// What every rank builds before the images: the world, its camera and the sequence.
+struct Loaded {
+    world: World,
+    camera: Entity,
+    width: u32,
+    quality: Quality,
+    sequence: Sequence,
+    /// Images in the sequence, and the first one to render.
+    images: u32,
+    first: u32,
 }
 
 /// A positive, finite number of seconds.
@@ -151,6 +167,13 @@ pub(crate) fn run(args: AnimateArgs) -> Result<()> {
         }
     }
     check_exposure(args.exposure)?;
+    let mut node = Node::join(&args.cluster)?;
+    let result = animate(&args, &pattern, &mut node);
+    node.end(result)
+}
+
+/// Builds the world and the sequence, and finds the first image to render.
+fn load(args: &AnimateArgs, pattern: &FramePattern) -> Result<Loaded> {
     let mut world = World::new();
     let (mut scene, width, environment) = build_framed(
         &mut world,
@@ -228,15 +251,51 @@ pub(crate) fn run(args: AnimateArgs) -> Result<()> {
     } else {
         0
     };
+    Ok(Loaded {
+        world,
+        camera: spawned.camera,
+        width,
+        quality,
+        sequence,
+        images,
+        first,
+    })
+}
+
+/// `sylva animate` on this node: alone, or one rank of an MPI run (rank 0 writes).
+fn animate(args: &AnimateArgs, pattern: &FramePattern, node: &mut Node) -> Result<()> {
+    let interrupted = interrupt_flag();
+    let (loaded, cluster) = node.agree(load(args, pattern), &interrupted)?;
+    let Loaded {
+        mut world,
+        camera,
+        width,
+        quality,
+        sequence,
+        images,
+        first,
+    } = loaded;
+    let leads = node.leads();
+    if let Some(cluster) = cluster {
+        world.insert_resource(cluster);
+    }
     if first == images {
-        eprintln!("all {images} images are there already");
+        if leads {
+            eprintln!("all {images} images are there already");
+        }
         return Ok(());
+    }
+    if !leads {
+        world.entity_mut(camera).remove::<(
+            sylva::engine::discontinuity::DiscontinuityFilter,
+            FilteredImage,
+        )>();
     }
     sequence.skip(&mut world, 0, first.saturating_sub(1));
     // The preview's frames: those already written are read back (PNG only: EXR images
     // would need tone mapping again), the new ones kept as they are written.
     let mut preview_frames = Vec::new();
-    if args.preview.is_some() {
+    if args.preview.is_some() && leads {
         for index in 0..first {
             let path = pattern.path(index);
             if ImageKind::from_path(&path)? != ImageKind::Png {
@@ -250,7 +309,7 @@ pub(crate) fn run(args: AnimateArgs) -> Result<()> {
         }
     }
 
-    let bar = if args.quiet {
+    let bar = if args.quiet || !leads {
         ProgressBar::hidden()
     } else {
         ProgressBar::new(u64::from(images))
@@ -262,19 +321,25 @@ pub(crate) fn run(args: AnimateArgs) -> Result<()> {
         .expect("the template is valid"),
     );
     bar.set_position(u64::from(first));
-    let interrupted = interrupt_flag();
     let stop = StopAt {
-        interrupt: Some(interrupted.clone()),
+        interrupt: Some(match world.get_resource::<Cluster>() {
+            Some(cluster) => cluster.stop_flag(),
+            None => interrupted.clone(),
+        }),
         ..StopAt::default()
     };
     let mut schedule = frame_schedule();
-    let mut profile = CliProfile::start(&mut world, args.profile.as_deref())?;
+    let mut profile = if leads {
+        CliProfile::start(&mut world, args.profile.as_deref())?
+    } else {
+        None
+    };
     let start = std::time::Instant::now();
     for index in first..images {
         let stopped = sequence.render_image(
             &mut world,
             &mut schedule,
-            spawned.camera,
+            camera,
             index,
             &stop,
             |world, _| {
@@ -284,7 +349,19 @@ pub(crate) fn run(args: AnimateArgs) -> Result<()> {
                 Flow::Continue
             },
         );
+        if stopped == Stopped::Interrupted && !leads {
+            return match world.get_resource::<Cluster>().and_then(Cluster::failure) {
+                Some(failure) => node.fail_with(failure),
+                None => Ok(()),
+            };
+        }
         if stopped == Stopped::Interrupted {
+            if let Some(failure) = node.end_frames(&mut world) {
+                node.fail(&format!(
+                    "{failure} (images 0 to {} are written; --resume continues with image {index})",
+                    index.saturating_sub(1)
+                ));
+            }
             bar.finish_and_clear();
             eprintln!(
                 "interrupted: images 0 to {} are written; --resume continues with image {index}",
@@ -295,8 +372,11 @@ pub(crate) fn run(args: AnimateArgs) -> Result<()> {
             }
             std::process::exit(130);
         }
+        if !leads {
+            continue;
+        }
         let film = world
-            .get::<Film>(spawned.camera)
+            .get::<Film>(camera)
             .ok_or_else(|| anyhow::anyhow!("the camera has no film"))?;
         let metadata: Vec<(String, String)> = [
             (
@@ -315,7 +395,7 @@ pub(crate) fn run(args: AnimateArgs) -> Result<()> {
         .map(|(k, v)| (k.to_string(), v))
         .into();
         let writing = std::time::Instant::now();
-        let shown = shown_film(film, world.get::<FilteredImage>(spawned.camera));
+        let shown = shown_film(film, world.get::<FilteredImage>(camera));
         shown.write_with(&pattern.path(index), args.exposure, &metadata)?;
         if args.preview.is_some() {
             preview_frames.push(shown.to_srgba8(args.exposure));
@@ -326,6 +406,12 @@ pub(crate) fn run(args: AnimateArgs) -> Result<()> {
         bar.inc(1);
     }
     bar.finish_and_clear();
+    if !leads {
+        return Ok(());
+    }
+    if let Some(failure) = node.end_frames(&mut world) {
+        node.fail(&failure);
+    }
     if let Some(preview) = &args.preview {
         let fps = u16::try_from(args.fps).unwrap_or(u16::MAX);
         sylva::engine::film::write_apng(
