@@ -14,6 +14,18 @@ static MPIRUN: Mutex<()> = Mutex::new(());
 
 const SYLVA: &str = env!("CARGO_BIN_EXE_sylva");
 
+/// The forest at 96×72, interactive quality: every stage in play, frames of ~10 ms.
+const FOREST_INTERACTIVE: [&str; 8] = [
+    "--scene",
+    "forest",
+    "--width",
+    "96",
+    "--height",
+    "72",
+    "--preset",
+    "interactive",
+];
+
 fn temp_dir(name: &str) -> PathBuf {
     let dir = std::env::temp_dir().join(format!("sylva-mpi-{name}-{}", std::process::id()));
     let _ = std::fs::remove_dir_all(&dir);
@@ -78,26 +90,13 @@ fn bytes(path: &Path) -> Vec<u8> {
 fn still_and_progressive_images_are_one_process_images_bit_for_bit_on_1_2_3_ranks() {
     let _one = MPIRUN.lock().unwrap_or_else(|e| e.into_inner());
     let dir = temp_dir("same");
+    let progressive = [&FOREST_INTERACTIVE[..], &["--frames", "4"]].concat();
     let renders: [(&str, &[&str]); 2] = [
         (
             "still",
             &["--width", "96", "--height", "72", "--preset", "still"],
         ),
-        (
-            "progressive",
-            &[
-                "--scene",
-                "forest",
-                "--width",
-                "96",
-                "--height",
-                "72",
-                "--preset",
-                "interactive",
-                "--frames",
-                "4",
-            ],
-        ),
+        ("progressive", &progressive),
     ];
     for (name, settings) in renders {
         let reference = dir.join(format!("{name}.exr"));
@@ -136,16 +135,7 @@ fn still_and_progressive_images_are_one_process_images_bit_for_bit_on_1_2_3_rank
 fn a_checkpoint_resumes_on_another_number_of_ranks() {
     let _one = MPIRUN.lock().unwrap_or_else(|e| e.into_inner());
     let dir = temp_dir("resume");
-    let settings = [
-        "--scene",
-        "forest",
-        "--width",
-        "80",
-        "--height",
-        "60",
-        "--preset",
-        "interactive",
-    ];
+    let settings = FOREST_INTERACTIVE;
     let reference = dir.join("reference.exr");
     let mut list = vec![
         "render",
@@ -258,26 +248,19 @@ fn rank_pid(rank: usize, out: &Path) -> Option<u32> {
 /// once its first checkpoint is written, and the image and checkpoint paths.
 fn long_run(dir: &Path) -> (Child, PathBuf, PathBuf) {
     let out = dir.join("long.exr");
-    let list = args(&[
-        "render",
+    let mut list = args(&["render"]);
+    list.extend(args(&FOREST_INTERACTIVE));
+    list.extend(args(&[
         "--threads",
         "1",
-        "--scene",
-        "forest",
-        "--width",
-        "96",
-        "--height",
-        "72",
-        "--preset",
-        "interactive",
         "--frames",
         "1000000",
         "--checkpoint-every",
         "1s",
         "--out",
         out.to_str().unwrap(),
-    ]);
-    let child = mpirun_command(&[(3, list)])
+    ]));
+    let mut child = mpirun_command(&[(3, list)])
         .stdout(Stdio::piped())
         .stderr(Stdio::piped())
         .spawn()
@@ -285,7 +268,11 @@ fn long_run(dir: &Path) -> (Child, PathBuf, PathBuf) {
     let checkpoint = out.with_extension("checkpoint");
     let start = Instant::now();
     while !checkpoint.exists() {
-        assert!(start.elapsed() < Duration::from_secs(90), "no checkpoint");
+        if start.elapsed() > Duration::from_secs(90) || child.try_wait().unwrap().is_some() {
+            let _ = child.kill();
+            let output = child.wait_with_output().unwrap();
+            panic!("no checkpoint: {}", String::from_utf8_lossy(&output.stderr));
+        }
         std::thread::sleep(Duration::from_millis(50));
     }
     (child, out, checkpoint)
@@ -293,24 +280,18 @@ fn long_run(dir: &Path) -> (Child, PathBuf, PathBuf) {
 
 /// The checkpoint continues in a single process for half a second.
 fn resumes(checkpoint: &Path, dir: &Path) {
-    alone(&[
-        "render",
-        "-q",
-        "--scene",
-        "forest",
-        "--width",
-        "96",
-        "--height",
-        "72",
-        "--preset",
-        "interactive",
+    let out = dir.join("continued.exr");
+    let mut list = vec!["render", "-q"];
+    list.extend_from_slice(&FOREST_INTERACTIVE);
+    list.extend_from_slice(&[
         "--time",
         "500ms",
         "--resume",
         checkpoint.to_str().unwrap(),
         "--out",
-        dir.join("continued.exr").to_str().unwrap(),
+        out.to_str().unwrap(),
     ]);
+    alone(&list);
 }
 
 #[test]
