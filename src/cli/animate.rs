@@ -264,8 +264,7 @@ fn load(args: &AnimateArgs, pattern: &FramePattern) -> Result<Loaded> {
 
 /// `sylva animate` on this node: alone, or one rank of an MPI run (rank 0 writes).
 fn animate(args: &AnimateArgs, pattern: &FramePattern, node: &mut Node) -> Result<()> {
-    let interrupted = interrupt_flag();
-    let (loaded, cluster) = node.agree(load(args, pattern), &interrupted)?;
+    let (loaded, cluster, interrupted) = node.agree(load(args, pattern))?;
     let Loaded {
         mut world,
         camera,
@@ -324,7 +323,7 @@ fn animate(args: &AnimateArgs, pattern: &FramePattern, node: &mut Node) -> Resul
     let stop = StopAt {
         interrupt: Some(match world.get_resource::<Cluster>() {
             Some(cluster) => cluster.stop_flag(),
-            None => interrupted.clone(),
+            None => interrupted,
         }),
         ..StopAt::default()
     };

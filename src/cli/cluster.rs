@@ -91,22 +91,20 @@ impl Node {
     }
 
     /// Every rank reports whether it loaded the scene; each returns its world only when
-    /// all did. A failure ends the run: rank 0 prints which rank failed and why.
+    /// all did. A failure ends the run: rank 0 prints which rank failed and why. Then
+    /// Ctrl-C (SIGINT, or SIGTERM from `mpirun`) on the leading process sets the flag
+    /// returned, which the cluster's frames also stop on; a worker stops when rank 0
+    /// says so (or at a second signal).
     pub(crate) fn agree<T>(
         &mut self,
         loaded: Result<T>,
-        interrupt: &Arc<AtomicBool>,
-    ) -> Result<(T, Option<Cluster>)> {
+    ) -> Result<(T, Option<Cluster>, Arc<AtomicBool>)> {
         #[cfg(feature = "mpi")]
         if let Some(session) = &self.session {
             let mut cluster = Cluster::new(
                 Box::new(session.transport()),
                 self.timeout,
-                if self.leads() {
-                    interrupt.clone()
-                } else {
-                    Arc::new(AtomicBool::new(false))
-                },
+                Arc::new(AtomicBool::new(false)),
             );
             let (loaded, report) = match loaded {
                 Ok(value) => (Some(value), Ok(())),
@@ -116,10 +114,17 @@ impl Node {
                 self.fail_with(&error);
             }
             let loaded = loaded.expect("a rank that failed to load heard a failure");
-            return Ok((loaded, Some(cluster)));
+            // A worker keeps serving through the first signal: `mpirun` signals every
+            // rank, and a worker gone in the middle of sending a tile can take rank 0
+            // down before it has written what it has. Rank 0's stop ends it.
+            let interrupt = match self.leads() {
+                true => super::watch_interrupts(cluster.stop_flag()),
+                false => super::interrupt_flag(),
+            };
+            return Ok((loaded, Some(cluster), interrupt));
         }
-        let _ = interrupt;
-        Ok((loaded?, None))
+        let loaded = loaded?;
+        Ok((loaded, None, super::interrupt_flag()))
     }
 
     /// When a worker's progressive driver stops: only when rank 0 says so (the leader

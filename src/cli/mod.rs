@@ -339,7 +339,11 @@ fn parse_duration(text: &str) -> Result<Duration, String> {
 /// Set by the first Ctrl-C (SIGINT/SIGTERM): the render loop then stops after the frame
 /// in progress and writes what has accumulated. A second Ctrl-C exits at once (130).
 fn interrupt_flag() -> Arc<AtomicBool> {
-    let flag = Arc::new(AtomicBool::new(false));
+    watch_interrupts(Arc::new(AtomicBool::new(false)))
+}
+
+/// [`interrupt_flag`] on a given flag (a cluster's stop flag, on rank 0).
+fn watch_interrupts(flag: Arc<AtomicBool>) -> Arc<AtomicBool> {
     let handler_flag = flag.clone();
     let installed = ctrlc::set_handler(move || {
         if handler_flag.swap(true, Ordering::SeqCst) {

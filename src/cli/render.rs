@@ -313,8 +313,7 @@ pub(crate) fn run(args: RenderArgs) -> Result<()> {
 /// `sylva render` on this node.
 fn render(args: &RenderArgs, node: &mut Node) -> Result<()> {
     let _trace_guard = init_tracing(node.trace_path(args.trace.as_deref()).as_deref());
-    let interrupted = interrupt_flag();
-    let (loaded, cluster) = node.agree(load(args), &interrupted)?;
+    let (loaded, cluster, interrupted) = node.agree(load(args))?;
     let Loaded {
         mut world,
         camera,
