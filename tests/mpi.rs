@@ -246,10 +246,11 @@ fn rank_pid(rank: usize, out: &Path) -> Option<u32> {
 
 /// A long progressive run on 3 ranks with a checkpoint every second; returns the child
 /// once its first checkpoint is written, and the image and checkpoint paths.
-fn long_run(dir: &Path) -> (Child, PathBuf, PathBuf) {
+fn long_run(dir: &Path, extra: &[&str]) -> (Child, PathBuf, PathBuf) {
     let out = dir.join("long.exr");
     let mut list = args(&["render"]);
     list.extend(args(&FOREST_INTERACTIVE));
+    list.extend(args(extra));
     list.extend(args(&[
         "--threads",
         "1",
@@ -298,7 +299,7 @@ fn resumes(checkpoint: &Path, dir: &Path) {
 fn a_rank_killed_mid_run_ends_it_in_bounded_time_with_the_image_and_a_checkpoint() {
     let _one = MPIRUN.lock().unwrap_or_else(|e| e.into_inner());
     let dir = temp_dir("killed");
-    let (mut child, out, checkpoint) = long_run(&dir);
+    let (mut child, out, checkpoint) = long_run(&dir, &[]);
     std::thread::sleep(Duration::from_millis(1500));
     let pid = rank_pid(1, &out).expect("rank 1 is running");
     let killed = Command::new("kill")
@@ -320,7 +321,7 @@ fn a_rank_killed_mid_run_ends_it_in_bounded_time_with_the_image_and_a_checkpoint
 fn ctrl_c_on_mpirun_writes_the_image_and_a_checkpoint() {
     let _one = MPIRUN.lock().unwrap_or_else(|e| e.into_inner());
     let dir = temp_dir("interrupt");
-    let (mut child, out, checkpoint) = long_run(&dir);
+    let (mut child, out, checkpoint) = long_run(&dir, &[]);
     std::fs::remove_file(&checkpoint).unwrap();
     let interrupted = Command::new("kill")
         .args(["-INT", &child.id().to_string()])
@@ -377,4 +378,30 @@ fn animate_writes_one_process_images_on_3_ranks() {
         );
     }
     assert!(!cluster_dir.join("f_04.exr").exists());
+}
+
+#[test]
+fn a_hung_rank_is_named_after_the_time_limit_and_the_run_ends_with_what_it_has() {
+    let _one = MPIRUN.lock().unwrap_or_else(|e| e.into_inner());
+    let dir = temp_dir("hung");
+    let (mut child, out, checkpoint) = long_run(&dir, &["--cluster-timeout", "3s"]);
+    std::fs::remove_file(&checkpoint).unwrap();
+    let pid = rank_pid(2, &out).expect("rank 2 is running");
+    let stopped = Command::new("kill")
+        .args(["-STOP", &pid.to_string()])
+        .status()
+        .unwrap();
+    assert!(stopped.success());
+    let start = Instant::now();
+    wait_bounded(&mut child, start, Duration::from_secs(30));
+    let output = child.wait_with_output().unwrap();
+    let stderr = String::from_utf8_lossy(&output.stderr);
+    assert!(!output.status.success());
+    assert!(
+        stderr.contains("error: rank 2 sent nothing for 3."),
+        "the silent rank is named: {stderr}"
+    );
+    assert!(stderr.contains("rendered before the failure"), "{stderr}");
+    assert!(out.exists() && checkpoint.exists(), "{stderr}");
+    resumes(&checkpoint, &dir);
 }

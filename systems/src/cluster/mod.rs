@@ -5,7 +5,7 @@
 //! the frame index, and every rank checks it has the same ones before it renders).
 //!
 //! The protocol runs over a [`Transport`]: MPI with the `mpi` feature
-//! ([`mpi::MpiTransport`]), or in-process channels ([`ChannelTransport`], threads as
+//! (`mpi::MpiTransport`), or in-process channels ([`ChannelTransport`], threads as
 //! ranks, for tests and for trying the protocol without MPI). Insert a [`Cluster`]
 //! resource and [`render_tiles`](crate::render_tiles) shares its frames out; without it
 //! nothing here runs.
