@@ -94,8 +94,8 @@ type LocalLayouts = (Vec<u32>, Vec<(LayoutKey, [Vec2; 3])>);
 
 impl OpacityMaps {
     /// Builds the maps on the current rayon pool: one per distinct (shader, UVs) of the
-    /// alpha-masked triangles, each as fine as [`TARGET_TEXELS`] asks, within
-    /// [`BUDGET_SUBTRIANGLES`] in all.
+    /// alpha-masked triangles, each as fine as `TARGET_TEXELS` asks, within
+    /// `BUDGET_SUBTRIANGLES` in all.
     pub fn build(library: &GeometryLibrary, shaders: &ShaderTable) -> Self {
         let _span = tracing::info_span!("build_opacity_maps").entered();
         // Distinct layouts per geometry, in parallel; then merged in geometry order, so

@@ -80,7 +80,7 @@ pub struct MapPlant {
     pub species: u32,
 }
 
-/// Every plant (an entity with an [`Instance`] and a
+/// Every plant (an entity with an [`Instance`](sylva_engine::components::Instance) and a
 /// [`Layer`](sylva_engine::components::Layer)) as the map draws it, in entity order.
 pub fn map_plants(world: &mut World) -> Vec<MapPlant> {
     use sylva_engine::components::{Instance, Layer};

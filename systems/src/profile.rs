@@ -226,7 +226,7 @@ impl FrameProfiler {
     }
 }
 
-/// The stage-boundary system `K` of the schedule (see [`FrameProfiler::mark`]).
+/// The stage-boundary system `K` of the schedule (see `FrameProfiler::mark`).
 pub fn mark_stage<const K: usize>(profiler: Res<FrameProfiler>) {
     profiler.mark(K);
 }

@@ -48,7 +48,7 @@ pub fn transformed_bounds(table: &SupportTable, transform: &Affine3A) -> Aabb {
 /// Slab tests of a ray against the eight child boxes of a node, and the traversal loop
 /// built on them.
 pub trait NodeKernel: Copy {
-    /// [`Bvh::traverse_with`] on this kernel: with AVX2, one function compiled for it,
+    /// `Bvh::traverse_with` on this kernel: with AVX2, one function compiled for it,
     /// so the box tests inline into the loop (and the caller's leaf test, when it is a
     /// [`LeafVisit`] with an `#[inline(always)]` method).
     fn traverse(
