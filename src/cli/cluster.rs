@@ -20,7 +20,7 @@ pub(crate) struct ClusterArgs {
     #[cfg(feature = "mpi")]
     /// Under mpirun: the longest a rank waits for another before the run is ended with
     /// an error naming the silent rank.
-    #[arg(long, value_name = "SECONDS", default_value = "60s", value_parser = super::parse_duration)]
+    #[arg(long, value_name = "DURATION", default_value = "60s", value_parser = super::parse_duration)]
     cluster_timeout: Duration,
 }
 
