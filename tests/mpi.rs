@@ -244,6 +244,15 @@ fn rank_pid(rank: usize, out: &Path) -> Option<u32> {
         })
 }
 
+/// Sends `signal` (`-KILL`, `-INT`, …) to process `pid`.
+fn signal(signal: &str, pid: u32) {
+    let sent = Command::new("kill")
+        .args([signal, &pid.to_string()])
+        .status()
+        .unwrap();
+    assert!(sent.success(), "kill {signal} {pid}");
+}
+
 /// A long progressive run on 3 ranks with a checkpoint every second; returns the child
 /// once its first checkpoint is written, and the image and checkpoint paths.
 fn long_run(dir: &Path, extra: &[&str]) -> (Child, PathBuf, PathBuf) {
@@ -302,11 +311,7 @@ fn a_rank_killed_mid_run_ends_it_in_bounded_time_with_the_image_and_a_checkpoint
     let (mut child, out, checkpoint) = long_run(&dir, &[]);
     std::thread::sleep(Duration::from_millis(1500));
     let pid = rank_pid(1, &out).expect("rank 1 is running");
-    let killed = Command::new("kill")
-        .args(["-KILL", &pid.to_string()])
-        .status()
-        .unwrap();
-    assert!(killed.success());
+    signal("-KILL", pid);
     let start = Instant::now();
     wait_bounded(&mut child, start, Duration::from_secs(30));
     let output = child.wait_with_output().unwrap();
@@ -323,11 +328,7 @@ fn ctrl_c_on_mpirun_writes_the_image_and_a_checkpoint() {
     let dir = temp_dir("interrupt");
     let (mut child, out, checkpoint) = long_run(&dir, &[]);
     std::fs::remove_file(&checkpoint).unwrap();
-    let interrupted = Command::new("kill")
-        .args(["-INT", &child.id().to_string()])
-        .status()
-        .unwrap();
-    assert!(interrupted.success());
+    signal("-INT", child.id());
     let start = Instant::now();
     wait_bounded(&mut child, start, Duration::from_secs(30));
     let output = child.wait_with_output().unwrap();
@@ -387,11 +388,7 @@ fn a_hung_rank_is_named_after_the_time_limit_and_the_run_ends_with_what_it_has()
     let (mut child, out, checkpoint) = long_run(&dir, &["--cluster-timeout", "3s"]);
     std::fs::remove_file(&checkpoint).unwrap();
     let pid = rank_pid(2, &out).expect("rank 2 is running");
-    let stopped = Command::new("kill")
-        .args(["-STOP", &pid.to_string()])
-        .status()
-        .unwrap();
-    assert!(stopped.success());
+    signal("-STOP", pid);
     let start = Instant::now();
     wait_bounded(&mut child, start, Duration::from_secs(30));
     let output = child.wait_with_output().unwrap();
