@@ -402,3 +402,53 @@ fn a_hung_rank_is_named_after_the_time_limit_and_the_run_ends_with_what_it_has()
     assert!(out.exists() && checkpoint.exists(), "{stderr}");
     resumes(&checkpoint, &dir);
 }
+
+#[test]
+fn converge_on_3_ranks_renders_the_one_process_reference_and_measures_every_setting() {
+    let _one = MPIRUN.lock().unwrap_or_else(|e| e.into_inner());
+    let dir = temp_dir("converge");
+    let settings = [
+        "converge",
+        "-q",
+        "--width",
+        "48",
+        "--height",
+        "36",
+        "--configs",
+        "interactive,still",
+        "--budget",
+        "1s",
+        "--reference-frames",
+        "2",
+    ];
+    let (alone_dir, cluster_dir) = (dir.join("alone"), dir.join("cluster"));
+    let alone_out = alone_dir.to_str().unwrap().to_owned();
+    let mut list = settings.to_vec();
+    list.extend(["--out", &alone_out]);
+    alone(&list);
+    // Twice: the second run takes the reference rank 0 cached, the others follow.
+    for _ in 0..2 {
+        let mut list = args(&settings);
+        list.extend(args(&[
+            "--threads",
+            "1",
+            "--out",
+            cluster_dir.to_str().unwrap(),
+        ]));
+        let (output, _) = run_bounded(mpirun_command(&[(3, list)]), Duration::from_secs(120));
+        let stdout = String::from_utf8_lossy(&output.stdout);
+        assert!(
+            output.status.success(),
+            "{}",
+            String::from_utf8_lossy(&output.stderr)
+        );
+        assert!(
+            bytes(&alone_dir.join("reference.film")) == bytes(&cluster_dir.join("reference.film"))
+        );
+        let csv = std::fs::read_to_string(cluster_dir.join("error_vs_time.csv")).unwrap();
+        for setting in ["interactive", "still"] {
+            assert!(csv.lines().any(|l| l.starts_with(setting)), "{csv}");
+            assert_eq!(stdout.matches(setting).count(), 1, "{stdout}");
+        }
+    }
+}

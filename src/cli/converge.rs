@@ -2,6 +2,7 @@
 //! output directory), one progressive run per setting, then the CSV, the plot and the
 //! table.
 
+use super::cluster::{ClusterArgs, Node};
 use super::plot::plot_error_vs_time;
 use super::{SceneArgs, build_lit, hash_scene, init_tracing, parse_duration, scene_label};
 use anyhow::{Context, Result};
@@ -13,9 +14,11 @@ use std::time::Duration;
 use sylva::prelude::{
     Entity, Film, Fingerprint, Quality, RenderSeed, Schedule, Vec3, World, frame_schedule, spawn,
 };
+use sylva::systems::cluster::Cluster;
 use sylva::systems::converge::{
     ErrorSample, Setting, film_pixels, measure, render_reference, summarize, write_csv,
 };
+use sylva::systems::{Flow, StopAt, refine};
 
 #[derive(Args, Debug)]
 pub(crate) struct ConvergeArgs {
@@ -56,6 +59,8 @@ pub(crate) struct ConvergeArgs {
     /// No progress output.
     #[arg(long, short)]
     quiet: bool,
+    #[command(flatten)]
+    cluster: ClusterArgs,
 }
 
 /// Parses a fraction in (0, 1].
@@ -74,7 +79,13 @@ pub fn run(args: ConvergeArgs) -> Result<()> {
     let settings = chosen_settings(&args.configs)?;
     std::fs::create_dir_all(&args.out)
         .with_context(|| format!("{}: cannot create the directory", args.out.display()))?;
+    let mut node = Node::join(&args.cluster)?;
+    let result = converge(&args, settings, &mut node);
+    node.end(result)
+}
 
+/// Builds the world for `converge`; returns it and its camera.
+fn load(args: &ConvergeArgs) -> Result<(World, Entity)> {
     let mut world = World::new();
     let (mut scene, _, environment) =
         build_lit(&mut world, &args.scene, args.env.as_deref(), args.lights)?;
@@ -86,7 +97,16 @@ pub fn run(args: ConvergeArgs) -> Result<()> {
     if let Some(environment) = environment {
         world.spawn(environment);
     }
-    let camera = spawned.camera;
+    Ok((world, spawned.camera))
+}
+
+/// `sylva converge` on this node: alone, or one rank of an MPI run (rank 0 measures,
+/// decides when each setting's run ends and writes; the others render with it).
+fn converge(args: &ConvergeArgs, settings: Vec<Setting>, node: &mut Node) -> Result<()> {
+    let ((mut world, camera), cluster, _interrupted) = node.agree(load(args))?;
+    if let Some(cluster) = cluster {
+        world.insert_resource(cluster);
+    }
     let mut schedule = frame_schedule();
 
     let bounces = settings
@@ -94,13 +114,25 @@ pub fn run(args: ConvergeArgs) -> Result<()> {
         .map(|s| s.quality.bounces)
         .max()
         .unwrap_or(0);
-    let reference = reference(&args, bounces, &mut world, &mut schedule, camera)?;
+    let reference = reference(args, bounces, &mut world, &mut schedule, camera)?;
     let mut runs: Vec<(Setting, Vec<ErrorSample>)> = Vec::new();
     for setting in settings {
         setting
             .apply(&mut world, camera)
             .map_err(|e| anyhow::anyhow!("could not start the worker threads: {e}"))?;
         world.insert_resource(RenderSeed(args.scene.seed));
+        if world.get_resource::<Cluster>().is_some_and(|c| !c.leads()) {
+            // Render with rank 0 until it has measured this setting.
+            let stop = node.stop_at(StopAt::default(), &world);
+            refine(&mut world, &mut schedule, camera, &stop, |_, _| {
+                Flow::Continue
+            });
+            if let Some(failure) = world.resource::<Cluster>().failure() {
+                node.fail_with(failure);
+            }
+            world.resource_mut::<Cluster>().resume();
+            continue;
+        }
         let bar = spinner(args.quiet, &setting.name);
         let samples = measure(
             &mut world,
@@ -117,7 +149,13 @@ pub fn run(args: ConvergeArgs) -> Result<()> {
             },
         );
         bar.finish_and_clear();
+        if let Some(failure) = node.end_frames(&mut world) {
+            node.fail(&failure);
+        }
         runs.push((setting, samples));
+    }
+    if !node.leads() {
+        return Ok(());
     }
 
     let csv = args.out.join("error_vs_time.csv");
@@ -197,7 +235,21 @@ fn reference(
         .u64(quality.fingerprint());
     let key = hash.finish();
     let cache = args.out.join("reference.film");
-    if let Ok(film) = Film::read_checkpoint(&cache, key) {
+    // Rank 0 reads the cache and says whether every rank renders the reference.
+    let leads = world.get_resource::<Cluster>().is_none_or(Cluster::leads);
+    let cached = if leads {
+        Film::read_checkpoint(&cache, key).ok()
+    } else {
+        None
+    };
+    let use_cache = match world.get_resource_mut::<Cluster>() {
+        Some(mut cluster) => cluster.share(u64::from(cached.is_some()))? == 1,
+        None => cached.is_some(),
+    };
+    if use_cache && !leads {
+        return Ok(Vec::new());
+    }
+    if let Some(film) = cached.filter(|_| use_cache) {
         if !args.quiet {
             println!(
                 "reference: cached {} ({} frames, {} spp)",
@@ -211,7 +263,7 @@ fn reference(
     Setting::new("reference", quality)
         .apply(world, camera)
         .map_err(|e| anyhow::anyhow!("could not start the worker threads: {e}"))?;
-    let bar = if args.quiet {
+    let bar = if args.quiet || !leads {
         ProgressBar::hidden()
     } else {
         ProgressBar::new(u64::from(args.reference_frames))
@@ -230,6 +282,9 @@ fn reference(
         &mut |frame| bar.set_position(u64::from(frame)),
     );
     bar.finish_and_clear();
+    if !leads {
+        return Ok(Vec::new());
+    }
     let film = world
         .get::<Film>(camera)
         .context("the camera has no film")?;

@@ -190,6 +190,8 @@ pub struct Cluster {
     transport: Box<dyn Transport>,
     timeout: Duration,
     next_job: u64,
+    /// Phases of the run rank 0 has ended with [`finish`](Self::finish).
+    phase: u32,
     /// Messages rank 0 received for a job it has not started yet.
     deferred: Vec<(usize, Message)>,
     stop: Arc<AtomicBool>,
@@ -209,6 +211,7 @@ impl Cluster {
             transport,
             timeout,
             next_job: 0,
+            phase: 0,
             deferred: Vec::new(),
             stop,
             failure: None,
@@ -308,14 +311,48 @@ impl Cluster {
         first_error.map_or(Ok(()), Err)
     }
 
-    /// Rank 0 ends the run: the workers leave their loops. Does nothing elsewhere.
+    /// Rank 0 ends the run, or a phase of it: the workers' drivers stop (their stop
+    /// flag is set) and leave the frame they stood ready for. Does nothing elsewhere.
     pub fn finish(&mut self) -> Result<(), ClusterError> {
         if self.leads() {
             for rank in 1..self.size() {
                 self.send(rank, &Message::Stop)?;
             }
+            self.phase += 1;
+            self.deferred.clear();
         }
         Ok(())
+    }
+
+    /// A worker goes on into rank 0's next phase after [`finish`](Self::finish) ended
+    /// one: its stop flag is cleared. Nothing to do after a failure.
+    pub fn resume(&mut self) {
+        if self.failure.is_none() {
+            self.stop.store(false, Ordering::SeqCst);
+        }
+    }
+
+    /// Rank 0's `value` on every rank: rank 0 sends it, the others wait for it.
+    pub fn share(&mut self, value: u64) -> Result<u64, ClusterError> {
+        if self.leads() {
+            for rank in 1..self.size() {
+                self.send(rank, &Message::Share { value })?;
+            }
+            return Ok(value);
+        }
+        let start = Instant::now();
+        loop {
+            match self.receive()? {
+                Some((0, Message::Share { value })) => return Ok(value),
+                Some((rank, Message::Fail { text })) => {
+                    return Err(ClusterError::Failed { rank, error: text });
+                }
+                Some((rank, message)) => return Err(unexpected(rank, &message)),
+                None => {}
+            }
+            self.check_silence(0, start.elapsed(), 0)?;
+            std::thread::sleep(POLL);
+        }
     }
 
     /// Tells every other rank (rank 0 on a worker) that this one ends the run with
@@ -533,10 +570,15 @@ impl Cluster {
     ) -> Result<(), ClusterError> {
         lead.workers[rank].last_heard = Instant::now();
         match message {
+            // A worker's ready message of a phase rank 0 has ended: it was waiting for
+            // a frame that never came, and asks again in the new phase.
+            Message::Ready { phase, .. } if phase < self.phase => {}
             Message::Ready { job, .. } if job > lead.job => {
                 self.deferred.push((rank, message));
             }
-            Message::Ready { job, checks, want } if job == lead.job => {
+            Message::Ready {
+                job, checks, want, ..
+            } if job == lead.job => {
                 for (what, ours, theirs) in [
                     (
                         "progressive frame",
@@ -641,6 +683,7 @@ impl Cluster {
         self.send(
             0,
             &Message::Ready {
+                phase: self.phase,
                 job,
                 checks,
                 want: threads as u32 + RESERVE_RUNS,
@@ -689,8 +732,17 @@ impl Cluster {
                                 });
                             }
                         }
-                        Message::Done { job: j } if j == job && rank == 0 => done = true,
-                        Message::Stop if rank == 0 => return Ok(None),
+                        Message::Done { job: j } if j == job && rank == 0 => {
+                            // What follows (a stop, the next phase) is the next job's.
+                            done = true;
+                            break;
+                        }
+                        Message::Stop if rank == 0 => {
+                            // The job this worker stood ready for never runs.
+                            self.next_job -= 1;
+                            self.phase += 1;
+                            return Ok(None);
+                        }
                         Message::Fail { text } => {
                             return Err(ClusterError::Failed { rank, error: text });
                         }
@@ -793,6 +845,7 @@ fn unexpected(rank: usize, message: &Message) -> ClusterError {
         Message::Result { .. } => "a tile",
         Message::Done { .. } => "a frame end",
         Message::Stop => "a stop",
+        Message::Share { .. } => "a shared value",
         Message::Fail { .. } => "a failure",
     };
     ClusterError::Protocol {

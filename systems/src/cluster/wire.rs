@@ -26,8 +26,10 @@ pub(crate) enum Message {
     Loaded { error: Option<String> },
     /// Rank 0 has heard from everyone and every scene loaded: start.
     Go,
-    /// A worker has started job `job` with these checks and can take `want` tiles.
+    /// A worker has started job `job` of phase `phase` with these checks and can take
+    /// `want` runs of tiles.
     Ready {
+        phase: u32,
         job: u64,
         checks: FrameChecks,
         want: u32,
@@ -49,6 +51,8 @@ pub(crate) enum Message {
     Stop,
     /// The sender ends the run because of this error.
     Fail { text: String },
+    /// A value rank 0 decided, for every rank to act on alike.
+    Share { value: u64 },
 }
 
 /// A message that could not be read.
@@ -71,8 +75,14 @@ impl Message {
                 }
             }
             Message::Go => out.u8(1),
-            Message::Ready { job, checks, want } => {
+            Message::Ready {
+                phase,
+                job,
+                checks,
+                want,
+            } => {
                 out.u8(2);
+                out.u32(*phase);
                 out.u64(*job);
                 out.u32(checks.frame);
                 out.u64(checks.scene);
@@ -113,6 +123,10 @@ impl Message {
                 out.u8(7);
                 out.text(text);
             }
+            Message::Share { value } => {
+                out.u8(8);
+                out.u64(*value);
+            }
         }
         out.0
     }
@@ -130,6 +144,7 @@ impl Message {
             },
             1 => Message::Go,
             2 => Message::Ready {
+                phase: input.u32()?,
                 job: input.u64()?,
                 checks: FrameChecks {
                     frame: input.u32()?,
@@ -170,6 +185,9 @@ impl Message {
             6 => Message::Stop,
             7 => Message::Fail {
                 text: input.text()?,
+            },
+            8 => Message::Share {
+                value: input.u64()?,
             },
             _ => return Err(Malformed),
         };
@@ -424,6 +442,7 @@ mod tests {
             },
             Message::Go,
             Message::Ready {
+                phase: 2,
                 job: 3,
                 checks: FrameChecks {
                     frame: 9,
@@ -447,6 +466,7 @@ mod tests {
             Message::Fail {
                 text: "rank 2: disk full".into(),
             },
+            Message::Share { value: u64::MAX },
         ];
         for message in messages {
             let decoded = Message::decode(&message.encode()).expect("reads back");
