@@ -253,6 +253,14 @@ fn signal(signal: &str, pid: u32) {
     assert!(sent.success(), "kill {signal} {pid}");
 }
 
+/// Waits at most 30 s for the run to end, which must be a failure; returns its stderr.
+fn ends_failing(mut child: Child) -> String {
+    wait_bounded(&mut child, Instant::now(), Duration::from_secs(30));
+    let output = child.wait_with_output().unwrap();
+    assert!(!output.status.success());
+    String::from_utf8_lossy(&output.stderr).into_owned()
+}
+
 /// A long progressive run on 3 ranks with a checkpoint every second; returns the child
 /// once its first checkpoint is written, and the image and checkpoint paths.
 fn long_run(dir: &Path, extra: &[&str]) -> (Child, PathBuf, PathBuf) {
@@ -308,15 +316,11 @@ fn resumes(checkpoint: &Path, dir: &Path) {
 fn a_rank_killed_mid_run_ends_it_in_bounded_time_with_the_image_and_a_checkpoint() {
     let _one = MPIRUN.lock().unwrap_or_else(|e| e.into_inner());
     let dir = temp_dir("killed");
-    let (mut child, out, checkpoint) = long_run(&dir, &[]);
+    let (child, out, checkpoint) = long_run(&dir, &[]);
     std::thread::sleep(Duration::from_millis(1500));
     let pid = rank_pid(1, &out).expect("rank 1 is running");
     signal("-KILL", pid);
-    let start = Instant::now();
-    wait_bounded(&mut child, start, Duration::from_secs(30));
-    let output = child.wait_with_output().unwrap();
-    let stderr = String::from_utf8_lossy(&output.stderr);
-    assert!(!output.status.success());
+    let stderr = ends_failing(child);
     assert!(stderr.contains("rank 1"), "the rank is named: {stderr}");
     assert!(out.exists() && checkpoint.exists());
     resumes(&checkpoint, &dir);
@@ -326,14 +330,10 @@ fn a_rank_killed_mid_run_ends_it_in_bounded_time_with_the_image_and_a_checkpoint
 fn ctrl_c_on_mpirun_writes_the_image_and_a_checkpoint() {
     let _one = MPIRUN.lock().unwrap_or_else(|e| e.into_inner());
     let dir = temp_dir("interrupt");
-    let (mut child, out, checkpoint) = long_run(&dir, &[]);
+    let (child, out, checkpoint) = long_run(&dir, &[]);
     std::fs::remove_file(&checkpoint).unwrap();
     signal("-INT", child.id());
-    let start = Instant::now();
-    wait_bounded(&mut child, start, Duration::from_secs(30));
-    let output = child.wait_with_output().unwrap();
-    let stderr = String::from_utf8_lossy(&output.stderr);
-    assert!(!output.status.success());
+    let stderr = ends_failing(child);
     assert!(stderr.contains("interrupted: writing the "), "{stderr}");
     assert!(out.exists() && checkpoint.exists(), "{stderr}");
     resumes(&checkpoint, &dir);
@@ -385,15 +385,11 @@ fn animate_writes_one_process_images_on_3_ranks() {
 fn a_hung_rank_is_named_after_the_time_limit_and_the_run_ends_with_what_it_has() {
     let _one = MPIRUN.lock().unwrap_or_else(|e| e.into_inner());
     let dir = temp_dir("hung");
-    let (mut child, out, checkpoint) = long_run(&dir, &["--cluster-timeout", "3s"]);
+    let (child, out, checkpoint) = long_run(&dir, &["--cluster-timeout", "3s"]);
     std::fs::remove_file(&checkpoint).unwrap();
     let pid = rank_pid(2, &out).expect("rank 2 is running");
     signal("-STOP", pid);
-    let start = Instant::now();
-    wait_bounded(&mut child, start, Duration::from_secs(30));
-    let output = child.wait_with_output().unwrap();
-    let stderr = String::from_utf8_lossy(&output.stderr);
-    assert!(!output.status.success());
+    let stderr = ends_failing(child);
     assert!(
         stderr.contains("error: rank 2 sent nothing for 3."),
         "the silent rank is named: {stderr}"
