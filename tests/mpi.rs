@@ -72,6 +72,18 @@ fn args(list: &[&str]) -> Vec<String> {
     list.iter().map(|s| s.to_string()).collect()
 }
 
+/// `sylva` with `list` on `ranks` ranks, which must succeed within two minutes;
+/// returns what rank 0 printed.
+fn succeeds_on(ranks: usize, list: Vec<String>) -> String {
+    let (output, _) = run_bounded(mpirun_command(&[(ranks, list)]), Duration::from_secs(120));
+    assert!(
+        output.status.success(),
+        "{}",
+        String::from_utf8_lossy(&output.stderr)
+    );
+    String::from_utf8_lossy(&output.stdout).into_owned()
+}
+
 /// `sylva render` alone.
 fn alone(list: &[&str]) {
     let output = Command::new(SYLVA).args(list).output().unwrap();
@@ -108,14 +120,7 @@ fn still_and_progressive_images_are_one_process_images_bit_for_bit_on_1_2_3_rank
             let mut list = args(&["render", "--threads", &threads.to_string()]);
             list.extend(args(&["--out", out.to_str().unwrap()]));
             list.extend(args(settings));
-            let (output, _) =
-                run_bounded(mpirun_command(&[(ranks, list)]), Duration::from_secs(120));
-            let stdout = String::from_utf8_lossy(&output.stdout);
-            assert!(
-                output.status.success(),
-                "{name} {ranks}x{threads}: {}",
-                String::from_utf8_lossy(&output.stderr)
-            );
+            let stdout = succeeds_on(ranks, list);
             assert!(
                 bytes(&out) == bytes(&reference),
                 "{name}: {ranks} ranks × {threads} threads differ from one process"
@@ -162,12 +167,7 @@ fn a_checkpoint_resumes_on_another_number_of_ranks() {
         list.extend(args(&extra));
         list.extend(args(&["--out", out.to_str().unwrap()]));
         list.extend(args(&settings));
-        let (output, _) = run_bounded(mpirun_command(&[(ranks, list)]), Duration::from_secs(120));
-        assert!(
-            output.status.success(),
-            "{}",
-            String::from_utf8_lossy(&output.stderr)
-        );
+        succeeds_on(ranks, list);
     }
     assert!(bytes(&resumed) == bytes(&reference));
 }
@@ -365,12 +365,7 @@ fn animate_writes_one_process_images_on_3_ranks() {
     alone(&list);
     let mut list = args(&settings);
     list.extend(args(&["--threads", "1", "--out", &pattern(&cluster_dir)]));
-    let (output, _) = run_bounded(mpirun_command(&[(3, list)]), Duration::from_secs(120));
-    assert!(
-        output.status.success(),
-        "{}",
-        String::from_utf8_lossy(&output.stderr)
-    );
+    succeeds_on(3, list);
     for k in 0..4 {
         let name = format!("f_{k:02}.exr");
         assert!(
@@ -431,13 +426,7 @@ fn converge_on_3_ranks_renders_the_one_process_reference_and_measures_every_sett
             "--out",
             cluster_dir.to_str().unwrap(),
         ]));
-        let (output, _) = run_bounded(mpirun_command(&[(3, list)]), Duration::from_secs(120));
-        let stdout = String::from_utf8_lossy(&output.stdout);
-        assert!(
-            output.status.success(),
-            "{}",
-            String::from_utf8_lossy(&output.stderr)
-        );
+        let stdout = succeeds_on(3, list);
         assert!(
             bytes(&alone_dir.join("reference.film")) == bytes(&cluster_dir.join("reference.film"))
         );
