@@ -291,10 +291,15 @@ fn run(
 ) -> World {
     let mut schedule = frame_schedule();
     let mut applied = 0;
+    let mut given_up = false;
     // The map, and the top-level build and refit counts it was made at.
     let mut map: (Arc<Vec<MapPlant>>, Option<(u64, u64)>) = (Arc::default(), None);
     loop {
-        let converged = world.get::<Film>(camera).map_or(0, Film::frames) >= max_frames;
+        // A frame given up is made again even without a new command: the command that
+        // gave it up may have been taken before the frame started (it is sent before
+        // the flag is raised), and the film it left may look converged.
+        let converged =
+            !given_up && world.get::<Film>(camera).map_or(0, Film::frames) >= max_frames;
         // Idle when converged: wait for a command (checking now and then that the
         // window is still there); otherwise take whatever has arrived.
         let first = if converged {
@@ -324,7 +329,8 @@ fn run(
             &StopAt::default(),
             |_, _| crate::progressive::Flow::Stop,
         );
-        if progress.cancelled > 0 {
+        given_up = progress.cancelled > 0;
+        if given_up {
             log.lock().unwrap_or_else(PoisonError::into_inner).cancelled += 1;
             // The given-up frame's times are not a frame's.
             if let Some(profiler) = world.get_resource::<FrameProfiler>() {
