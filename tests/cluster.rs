@@ -3,13 +3,19 @@
 
 use bevy_ecs::prelude::*;
 use bevy_ecs::schedule::SingleThreadedExecutor;
-use std::sync::Arc;
 use std::sync::atomic::AtomicBool;
+use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
+use sylva::engine::camera::Camera;
+use sylva::engine::components::Transform;
 use sylva::engine::film::Film;
+use sylva::scenes::editor::EditorAction;
 use sylva::scenes::{build_scene, spawn};
 use sylva::systems::cluster::{
     ChannelTransport, Cluster, ClusterCounters, ClusterError, Transport,
+};
+use sylva::systems::live::{
+    LiveCommand, LiveRender, SharedEdits, SingleThreadedSystems, serve_live,
 };
 use sylva::systems::{
     Quality, RenderSeed, StopAt, Stopped, frame_schedule, init_render_world, refine,
@@ -274,4 +280,278 @@ fn a_silent_rank_ends_the_frame_in_bounded_time_naming_it() {
     assert!(failure.to_string().starts_with("rank 1 sent nothing for"));
     assert!(waited < Duration::from_secs(20), "gave up after {waited:?}");
     silent_thread.join().unwrap();
+}
+
+/// The meadow as the viewer sets it up for a live render: editor actions as shared
+/// edits, systems on the rank's own thread.
+fn live_meadow(threads: usize) -> (World, Entity) {
+    let mut world = World::new();
+    let camera = meadow(&mut world, 7, threads);
+    world.insert_resource(RenderSeed(7));
+    world.insert_resource(SharedEdits(Arc::new(
+        move |world: &mut World, bytes: &[u8]| {
+            EditorAction::from_bytes(bytes)?.apply(world, camera);
+            Ok(())
+        },
+    )));
+    world.insert_resource(SingleThreadedSystems);
+    (world, camera)
+}
+
+/// Commands sent with a pause after each (a pause shorter than a frame gives the frame
+/// in progress up), then the accumulated frames to wait for.
+type Burst = (Vec<(LiveCommand, Duration)>, u32);
+
+/// Sends each burst to `live`, waits for the frame that shows it with `frames`
+/// accumulated, idles for `idle`; returns the pixels shown after each burst and, once
+/// stopped, the film's bits.
+fn drive_live(
+    mut live: LiveRender,
+    camera: Entity,
+    bursts: &[Burst],
+    idle: Duration,
+) -> (Vec<Vec<u32>>, (u32, Vec<u64>)) {
+    let mut shown = Vec::new();
+    for (burst, (commands, frames)) in bursts.iter().enumerate() {
+        let mut last = live.last_sent();
+        for (command, pause) in commands {
+            last = live.send(command.clone()).expect("the render thread runs");
+            std::thread::sleep(*pause);
+        }
+        let start = Instant::now();
+        let mut seen = None;
+        let image = loop {
+            if let Some(image) = live.take_latest() {
+                if image.applied >= last && image.frames >= *frames {
+                    break image;
+                }
+                seen = Some((image.applied, image.frames));
+            }
+            assert!(live.failure().is_none(), "{:?}", live.failure());
+            assert!(
+                start.elapsed() < Duration::from_secs(60),
+                "burst {burst}: no frame came (last shown: command and frames {seen:?}, waiting for {last} and {frames}; {:?})",
+                live.frame_log()
+            );
+            std::thread::sleep(Duration::from_millis(2));
+        };
+        shown.push(image.pixels);
+        std::thread::sleep(idle);
+    }
+    let failure = live.failure();
+    let world = live.stop().unwrap_or_else(|| panic!("{failure:?}"));
+    (shown, film_bits(&world, camera))
+}
+
+/// Moves, edits (undone), the wind on and off, bursts that give frames up.
+fn walkthrough() -> Vec<Burst> {
+    let edit = |action: EditorAction| LiveCommand::Shared(action.to_bytes());
+    let moved = Transform::looking_at(
+        glam::Vec3::new(5.0, 3.0, 20.0),
+        glam::Vec3::Y,
+        glam::Vec3::Y,
+    );
+    let quick = Duration::from_millis(3);
+    vec![
+        (vec![], 2),
+        (
+            vec![
+                (edit(EditorAction::Select(63, 20)), quick),
+                (edit(EditorAction::Delete), Duration::ZERO),
+            ],
+            2,
+        ),
+        (
+            vec![
+                (LiveCommand::Pose(moved), quick),
+                (edit(EditorAction::Undo), quick),
+                (edit(EditorAction::InsertAtGround(1.5, 2.0)), Duration::ZERO),
+            ],
+            2,
+        ),
+        (vec![(edit(EditorAction::Wind(true)), Duration::ZERO)], 1),
+        (
+            vec![
+                (edit(EditorAction::Wind(false)), quick),
+                (LiveCommand::Pose(Transform::default()), quick),
+                (LiveCommand::Pose(moved), Duration::ZERO),
+            ],
+            2,
+        ),
+    ]
+}
+
+#[test]
+fn a_live_render_on_a_cluster_shows_what_one_process_shows_through_moves_edits_and_idling() {
+    let bursts = walkthrough();
+    let (world, camera) = live_meadow(2);
+    let live = LiveRender::start(world, camera, 2, || {}).unwrap();
+    let (alone_shown, alone_film) = drive_live(live, camera, &bursts, Duration::ZERO);
+
+    let mut transports = ChannelTransport::mesh(3).into_iter();
+    let leader = transports.next().unwrap();
+    // Idle pauses longer than the time limit: rank 0's signs of life keep the run going.
+    let timeout = Duration::from_millis(600);
+    let workers: Vec<_> = transports
+        .map(|transport| {
+            std::thread::spawn(move || {
+                let (world, camera) = live_meadow(1);
+                let stop = Arc::new(AtomicBool::new(false));
+                let mut cluster = Cluster::new(Box::new(transport), timeout, stop);
+                cluster.agree_loaded(Ok(())).unwrap();
+                serve_live(world, camera, cluster).map(|world| world.resource::<Cluster>().total)
+            })
+        })
+        .collect();
+    let (mut world, camera) = live_meadow(1);
+    let stop = Arc::new(AtomicBool::new(false));
+    let mut cluster = Cluster::new(Box::new(leader), timeout, stop);
+    cluster.agree_loaded(Ok(())).unwrap();
+    world.insert_resource(cluster);
+    let live = LiveRender::start(world, camera, 2, || {}).unwrap();
+    let (shown, film) = drive_live(live, camera, &bursts, Duration::from_millis(1500));
+    for worker in workers {
+        let counters = worker
+            .join()
+            .unwrap()
+            .expect("a worker ends when rank 0 quits");
+        assert!(counters.tiles_here > 0, "a worker rendered nothing");
+    }
+    assert_eq!(film, alone_film, "the last film differs from one process's");
+    for (i, (a, b)) in shown.iter().zip(&alone_shown).enumerate() {
+        // The wind's pose depends on how many frames ran while it blew.
+        if i != 3 {
+            let differing = a.iter().zip(b).filter(|(a, b)| a != b).count();
+            assert!(
+                differing == 0,
+                "burst {i}: {differing} pixels differ from one process's"
+            );
+        }
+    }
+    assert!(shown[1] != shown[0], "the delete changed nothing");
+}
+
+#[test]
+fn a_live_worker_whose_rank_0_falls_silent_ends_naming_it() {
+    let mut transports = ChannelTransport::mesh(2);
+    let worker = transports.pop().unwrap();
+    let leader = transports.pop().unwrap();
+    let silent = std::thread::spawn(move || {
+        let stop = Arc::new(AtomicBool::new(false));
+        let mut cluster = Cluster::new(Box::new(leader), Duration::from_secs(60), stop);
+        cluster.agree_loaded(Ok(())).unwrap();
+        // Loaded, then no frame and no sign of life.
+        std::thread::sleep(Duration::from_secs(2));
+    });
+    let (world, camera) = live_meadow(1);
+    let stop = Arc::new(AtomicBool::new(false));
+    let mut cluster = Cluster::new(Box::new(worker), Duration::from_millis(400), stop.clone());
+    cluster.agree_loaded(Ok(())).unwrap();
+    let start = Instant::now();
+    let failure = serve_live(world, camera, cluster).expect_err("it ends failing");
+    assert!(
+        matches!(failure, ClusterError::Silent { rank: 0, .. }),
+        "{failure:?}"
+    );
+    assert!(start.elapsed() < Duration::from_secs(5));
+    assert!(stop.load(std::sync::atomic::Ordering::SeqCst));
+    silent.join().unwrap();
+}
+
+/// [`live_meadow`] at 320×240: a frame of 75 runs of tiles, so that a worker is often
+/// in the middle of sending one.
+fn larger_live_meadow() -> (World, Entity) {
+    let (mut world, camera) = live_meadow(1);
+    let mut view = world.get_mut::<Camera>(camera).unwrap();
+    (view.width, view.height) = (320, 240);
+    (world, camera)
+}
+
+/// A rank that sees each message only 20 ms after it arrived, as a rank busy outside
+/// MPI's calls does: it goes on sending for a while after it has been told to stop.
+struct Late {
+    transport: ChannelTransport,
+    arrived: Mutex<std::collections::VecDeque<(Instant, usize, Vec<u8>)>>,
+}
+
+impl Transport for Late {
+    fn rank(&self) -> usize {
+        self.transport.rank()
+    }
+    fn size(&self) -> usize {
+        self.transport.size()
+    }
+    fn send(&self, to: usize, bytes: &[u8]) -> Result<(), String> {
+        self.transport.send(to, bytes)
+    }
+    fn try_receive(&self) -> Option<(usize, Vec<u8>)> {
+        let mut arrived = self.arrived.lock().unwrap();
+        while let Some((from, bytes)) = self.transport.try_receive() {
+            arrived.push_back((Instant::now(), from, bytes));
+        }
+        match arrived.front() {
+            Some((at, ..)) if at.elapsed() >= Duration::from_millis(20) => {
+                arrived.pop_front().map(|(_, from, bytes)| (from, bytes))
+            }
+            _ => None,
+        }
+    }
+}
+
+/// Three ranks render a live walk whose window closes while frames are in progress;
+/// returns how each worker ended, or `None` for one still blocked 10 s later. Sends of
+/// tiles wait until rank 0 takes them, as MPI's large sends do, and workers hear rank 0
+/// late, so they still send tiles of a frame rank 0 has given up.
+fn close_mid_walk() -> Vec<Option<Result<(), ClusterError>>> {
+    let mut transports = ChannelTransport::mesh_with_eager_limit(3, 4096).into_iter();
+    let leader = transports.next().unwrap();
+    let timeout = Duration::from_secs(20);
+    let (left, workers_left) = std::sync::mpsc::channel();
+    for transport in transports {
+        let left = left.clone();
+        std::thread::spawn(move || {
+            let (world, camera) = larger_live_meadow();
+            let stop = Arc::new(AtomicBool::new(false));
+            let late = Late {
+                transport,
+                arrived: Mutex::default(),
+            };
+            let mut cluster = Cluster::new(Box::new(late), timeout, stop);
+            cluster.agree_loaded(Ok(())).unwrap();
+            let _ = left.send(serve_live(world, camera, cluster).map(|_| ()));
+        });
+    }
+    let (mut world, camera) = larger_live_meadow();
+    let stop = Arc::new(AtomicBool::new(false));
+    let mut cluster = Cluster::new(Box::new(leader), timeout, stop);
+    cluster.agree_loaded(Ok(())).unwrap();
+    world.insert_resource(cluster);
+    let mut live = LiveRender::start(world, camera, 1000, || {}).unwrap();
+    for step in 0..5 {
+        let pose = Transform::looking_at(
+            glam::Vec3::new(step as f32, 3.0, 20.0),
+            glam::Vec3::Y,
+            glam::Vec3::Y,
+        );
+        live.send(LiveCommand::Pose(pose)).unwrap();
+        std::thread::sleep(Duration::from_millis(40));
+    }
+    let failure = live.failure();
+    assert!(live.stop().is_some(), "{failure:?}");
+    (0..2)
+        .map(|_| workers_left.recv_timeout(Duration::from_secs(10)).ok())
+        .collect()
+}
+
+#[test]
+fn closing_the_live_render_mid_frame_leaves_no_rank_blocked_in_a_send() {
+    // A worker sending tiles of the frame the quit gave up must still be taken in
+    // (before rank 0 waited for every worker to leave, the first walk hung in 4 of 4
+    // runs).
+    for walk in 0..3 {
+        for end in close_mid_walk() {
+            let end = end.unwrap_or_else(|| panic!("walk {walk}: a worker is still blocked"));
+            assert_eq!(end, Ok(()), "walk {walk}");
+        }
+    }
 }

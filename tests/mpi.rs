@@ -437,3 +437,99 @@ fn converge_on_3_ranks_renders_the_one_process_reference_and_measures_every_sett
         }
     }
 }
+
+/// `command` under `xvfb-run` (a private X server), or on the desktop's display when
+/// there is no Xvfb.
+fn on_xvfb(command: Command) -> Command {
+    if Command::new("xvfb-run").arg("--help").output().is_err() {
+        return command;
+    }
+    let mut wrapped = Command::new("xvfb-run");
+    wrapped
+        .args(["-a", "-s", "-screen 0 640x480x24"])
+        .arg(command.get_program())
+        .args(command.get_args());
+    wrapped
+}
+
+#[test]
+fn view_on_3_ranks_shows_what_one_window_shows_through_moves_and_edits() {
+    let _one = MPIRUN.lock().unwrap_or_else(|e| e.into_inner());
+    let dir = temp_dir("view");
+    // The default meadow at 96×72: pixel (63, 20) shows the big tree's crown.
+    let steps = [
+        "frames = 2",
+        "select = [63, 20]\ndelete = true\nframes = 2",
+        "position = [5, 3, 20]\nlook_at = [0, 1, 0]\nframes = 3",
+        "undo = true\nselect = [40, 30]\ninsert = [20, 42]\nframes = 2\nquit = true",
+    ];
+    let script = |name: &str| {
+        let text: String = steps
+            .iter()
+            .enumerate()
+            .map(|(i, step)| {
+                let shot = dir.join(format!("{name}{i}.png"));
+                format!(
+                    "[[step]]\n{step}\nscreenshot = {:?}\n\n",
+                    shot.to_str().unwrap()
+                )
+            })
+            .collect();
+        let path = dir.join(format!("{name}.toml"));
+        std::fs::write(&path, text).unwrap();
+        path.to_str().unwrap().to_owned()
+    };
+    let settings = ["view", "--width", "96", "--height", "72", "--script"];
+    let mut window = Command::new(SYLVA);
+    window.args(settings).arg(script("alone"));
+    let (output, _) = run_bounded(on_xvfb(window), Duration::from_secs(120));
+    assert!(
+        output.status.success(),
+        "{}",
+        String::from_utf8_lossy(&output.stderr)
+    );
+
+    let mut list = args(&settings);
+    list.extend([script("ranks"), "--cluster".into()]);
+    let (output, _) = run_bounded(
+        on_xvfb(mpirun_command(&[(3, list)])),
+        Duration::from_secs(120),
+    );
+    let stdout = String::from_utf8_lossy(&output.stdout);
+    assert!(
+        output.status.success(),
+        "{}",
+        String::from_utf8_lossy(&output.stderr)
+    );
+    assert!(stdout.contains("cluster: 3 ranks"), "{stdout}");
+    for i in 0..steps.len() {
+        let (alone, ranks) = (
+            dir.join(format!("alone{i}.png")),
+            dir.join(format!("ranks{i}.png")),
+        );
+        assert!(
+            bytes(&alone) == bytes(&ranks),
+            "step {i}: the window on 3 ranks shows another image than alone"
+        );
+    }
+    assert!(bytes(&dir.join("alone0.png")) != bytes(&dir.join("alone1.png")));
+
+    // --cluster outside mpirun, and a window per rank, are refused with what to do.
+    let output = Command::new(SYLVA)
+        .args(["view", "--cluster"])
+        .output()
+        .unwrap();
+    let stderr = String::from_utf8_lossy(&output.stderr);
+    assert_eq!(output.status.code(), Some(1), "{stderr}");
+    assert!(
+        stderr.contains("mpirun -np N sylva view --cluster"),
+        "{stderr}"
+    );
+    let (output, _) = run_bounded(
+        mpirun_command(&[(2, args(&["view", "--width", "32", "--height", "24"]))]),
+        Duration::from_secs(60),
+    );
+    let stderr = String::from_utf8_lossy(&output.stderr);
+    assert!(!output.status.success());
+    assert!(stderr.contains("needs --cluster"), "{stderr}");
+}

@@ -408,6 +408,146 @@ fn sway_for_height(height: f32, factors: SwayFactors) -> Sway {
     .expect("positive finite parameters for a height in 0.05 ..= 100 m and factors in 0.01 ..= 100")
 }
 
+/// Simulated seconds of wind per rendered frame: about real time at the interactive
+/// frame rates of the larger scenes.
+pub const WIND_FRAME_SECONDS: f64 = 0.1;
+
+/// One of the viewer's editing operations as data: what a click, key or script step
+/// asks for, applied to a world by [`apply`](Self::apply) and carried as bytes
+/// ([`to_bytes`](Self::to_bytes)) to the other ranks of a cluster, which apply it alike.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub enum EditorAction {
+    /// Select the plant seen at a pixel.
+    Select(u32, u32),
+    /// Plant where a pixel meets the scene.
+    Insert(u32, u32),
+    /// Move the selection to where a pixel meets the scene.
+    Move(u32, u32),
+    /// Delete the selection.
+    Delete,
+    /// Take back the latest edit.
+    Undo,
+    /// Make the latest undone edit again.
+    Redo,
+    /// Wind on or off.
+    Wind(bool),
+    /// Select this plant (from the map).
+    SelectPlant(Entity),
+    /// Select the plant whose crown covers a ground position (x, z) (a script's map
+    /// click).
+    SelectAtGround(f32, f32),
+    /// Plant at a ground position (x, z) (from the map).
+    InsertAtGround(f32, f32),
+    /// Move the selection to a ground position (x, z) (from the map).
+    MoveToGround(f32, f32),
+}
+
+impl EditorAction {
+    /// Does it to `world`, whose pixels are `camera`'s.
+    pub fn apply(self, world: &mut World, camera: Entity) {
+        match self {
+            EditorAction::Select(x, y) => {
+                select_at(world, camera, (x, y));
+            }
+            EditorAction::SelectPlant(plant) => {
+                select(world, Some(plant));
+            }
+            EditorAction::SelectAtGround(x, z) => {
+                select_at_ground(world, (x, z));
+            }
+            EditorAction::InsertAtGround(x, z) => {
+                insert_at_ground(world, (x, z));
+            }
+            EditorAction::MoveToGround(x, z) => {
+                move_selected_to_ground(world, (x, z));
+            }
+            EditorAction::Insert(x, y) => {
+                insert_at(world, camera, (x, y));
+            }
+            EditorAction::Move(x, y) => {
+                move_selected_to(world, camera, (x, y));
+            }
+            EditorAction::Delete => {
+                delete_selected(world);
+            }
+            EditorAction::Undo => {
+                undo(world);
+            }
+            EditorAction::Redo => {
+                redo(world);
+            }
+            EditorAction::Wind(on) => {
+                set_wind(world, on, WIND_FRAME_SECONDS);
+            }
+        }
+    }
+
+    /// Its bytes: a kind byte, then its numbers little-endian (floats by their bits).
+    pub fn to_bytes(self) -> Vec<u8> {
+        let pair = |kind: u8, a: u32, b: u32| {
+            let mut bytes = vec![kind];
+            bytes.extend(a.to_le_bytes());
+            bytes.extend(b.to_le_bytes());
+            bytes
+        };
+        match self {
+            EditorAction::Select(x, y) => pair(0, x, y),
+            EditorAction::Insert(x, y) => pair(1, x, y),
+            EditorAction::Move(x, y) => pair(2, x, y),
+            EditorAction::Delete => vec![3],
+            EditorAction::Undo => vec![4],
+            EditorAction::Redo => vec![5],
+            EditorAction::Wind(on) => vec![6, u8::from(on)],
+            EditorAction::SelectPlant(plant) => std::iter::once(7)
+                .chain(plant.to_bits().to_le_bytes())
+                .collect(),
+            EditorAction::SelectAtGround(x, z) => pair(8, x.to_bits(), z.to_bits()),
+            EditorAction::InsertAtGround(x, z) => pair(9, x.to_bits(), z.to_bits()),
+            EditorAction::MoveToGround(x, z) => pair(10, x.to_bits(), z.to_bits()),
+        }
+    }
+
+    /// Reads [`to_bytes`](Self::to_bytes)' output; an error says what is wrong.
+    pub fn from_bytes(bytes: &[u8]) -> Result<Self, String> {
+        let malformed = || format!("an editor action of {} bytes cannot be read", bytes.len());
+        let (&kind, rest) = bytes.split_first().ok_or_else(malformed)?;
+        let pair = || match *rest {
+            [a0, a1, a2, a3, b0, b1, b2, b3] => Ok((
+                u32::from_le_bytes([a0, a1, a2, a3]),
+                u32::from_le_bytes([b0, b1, b2, b3]),
+            )),
+            _ => Err(malformed()),
+        };
+        let ground = || pair().map(|(x, z)| (f32::from_bits(x), f32::from_bits(z)));
+        let nothing = |action: EditorAction| match rest {
+            [] => Ok(action),
+            _ => Err(malformed()),
+        };
+        match kind {
+            0 => pair().map(|(x, y)| EditorAction::Select(x, y)),
+            1 => pair().map(|(x, y)| EditorAction::Insert(x, y)),
+            2 => pair().map(|(x, y)| EditorAction::Move(x, y)),
+            3 => nothing(EditorAction::Delete),
+            4 => nothing(EditorAction::Undo),
+            5 => nothing(EditorAction::Redo),
+            6 => match rest {
+                [on @ (0 | 1)] => Ok(EditorAction::Wind(*on == 1)),
+                _ => Err(malformed()),
+            },
+            7 => {
+                let bits: [u8; 8] = rest.try_into().map_err(|_| malformed())?;
+                Entity::try_from_bits(u64::from_le_bytes(bits))
+                    .map(EditorAction::SelectPlant)
+                    .ok_or_else(malformed)
+            }
+            8 => ground().map(|(x, z)| EditorAction::SelectAtGround(x, z)),
+            9 => ground().map(|(x, z)| EditorAction::InsertAtGround(x, z)),
+            10 => ground().map(|(x, z)| EditorAction::MoveToGround(x, z)),
+            _ => Err(format!("an editor action of unknown kind {kind}")),
+        }
+    }
+}
+
 /// Where a scene came from: what a saved ecosystem starts from.
 #[derive(Clone, Debug, PartialEq)]
 pub enum SceneSource {
@@ -565,6 +705,47 @@ fn with_history<R>(world: &mut World, edit: impl FnOnce(&mut EditHistory, &mut W
 mod tests {
     use super::*;
     use glam::Vec3;
+
+    #[test]
+    fn editor_actions_read_back_from_their_bytes_and_bad_bytes_are_refused() {
+        let plant = Entity::from_raw_u32(41).expect("a valid index");
+        let actions = [
+            EditorAction::Select(3, u32::MAX),
+            EditorAction::Insert(0, 7),
+            EditorAction::Move(640, 480),
+            EditorAction::Delete,
+            EditorAction::Undo,
+            EditorAction::Redo,
+            EditorAction::Wind(true),
+            EditorAction::Wind(false),
+            EditorAction::SelectPlant(plant),
+            EditorAction::SelectAtGround(-0.0, 1e-40),
+            EditorAction::InsertAtGround(12.5, -3.25),
+            EditorAction::MoveToGround(f32::MAX, 0.1),
+        ];
+        for action in actions {
+            let bytes = action.to_bytes();
+            let back = EditorAction::from_bytes(&bytes).expect("reads back");
+            // Bit for bit: the sign of a zero counts.
+            assert_eq!(format!("{back:?}"), format!("{action:?}"));
+            assert_eq!(back.to_bytes(), bytes);
+            for len in 0..bytes.len() {
+                assert!(
+                    EditorAction::from_bytes(&bytes[..len]).is_err(),
+                    "{action:?} cut"
+                );
+            }
+            let mut longer = bytes.clone();
+            longer.push(0);
+            assert!(
+                EditorAction::from_bytes(&longer).is_err(),
+                "{action:?} extended"
+            );
+        }
+        assert!(EditorAction::from_bytes(&[6, 2]).is_err());
+        let unknown = EditorAction::from_bytes(&[11]).unwrap_err();
+        assert!(unknown.contains("unknown kind 11"), "{unknown}");
+    }
 
     /// Every plant as (geometry, layer, transform bits), sorted: equal worlds list equal.
     fn listing(world: &mut World) -> Vec<(u32, Option<u32>, [u32; 10])> {

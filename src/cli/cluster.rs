@@ -77,6 +77,15 @@ impl Node {
         self.size > 1
     }
 
+    /// True when an MPI launcher started this process (a run of one rank included).
+    #[cfg(feature = "view")]
+    pub(crate) fn launched_by_mpi(&self) -> bool {
+        #[cfg(feature = "mpi")]
+        return self.session.is_some();
+        #[cfg(not(feature = "mpi"))]
+        false
+    }
+
     /// Where this rank writes the Chrome trace asked for as `path`: rank 0 there, rank
     /// r beside it as `NAME.rank<r>.json`.
     pub(crate) fn trace_path(&self, path: Option<&Path>) -> Option<PathBuf> {
@@ -99,6 +108,20 @@ impl Node {
         &mut self,
         loaded: Result<T>,
     ) -> Result<(T, Option<Cluster>, Arc<AtomicBool>)> {
+        let (loaded, cluster) = self.agree_loaded(loaded)?;
+        let interrupt = match &cluster {
+            // A worker keeps serving through the first signal: `mpirun` signals every
+            // rank, and a worker gone in the middle of sending a tile can take rank 0
+            // down before it has written what it has. Rank 0's stop ends it.
+            Some(cluster) if cluster.leads() => super::watch_interrupts(cluster.stop_flag()),
+            _ => super::interrupt_flag(),
+        };
+        Ok((loaded, cluster, interrupt))
+    }
+
+    /// [`agree`](Self::agree) without the signal handling: Ctrl-C keeps its default
+    /// action (the window's case, as without a cluster).
+    pub(crate) fn agree_loaded<T>(&mut self, loaded: Result<T>) -> Result<(T, Option<Cluster>)> {
         #[cfg(feature = "mpi")]
         if let Some(session) = &self.session {
             let mut cluster = Cluster::new(
@@ -114,17 +137,9 @@ impl Node {
                 self.fail_with(&error);
             }
             let loaded = loaded.expect("a rank that failed to load heard a failure");
-            // A worker keeps serving through the first signal: `mpirun` signals every
-            // rank, and a worker gone in the middle of sending a tile can take rank 0
-            // down before it has written what it has. Rank 0's stop ends it.
-            let interrupt = match self.leads() {
-                true => super::watch_interrupts(cluster.stop_flag()),
-                false => super::interrupt_flag(),
-            };
-            return Ok((loaded, Some(cluster), interrupt));
+            return Ok((loaded, Some(cluster)));
         }
-        let loaded = loaded?;
-        Ok((loaded, None, super::interrupt_flag()))
+        Ok((loaded?, None))
     }
 
     /// When a worker's progressive driver stops: only when rank 0 says so (the leader

@@ -4,6 +4,7 @@
 //! Only window glue lives here: the camera control, the scripts and the render thread
 //! are `sylva_systems::walkthrough` and `sylva_systems::live`.
 
+use super::cluster::{ClusterArgs, Node};
 use super::profile::{finish_profile, open_profile};
 use super::*;
 use std::collections::HashSet;
@@ -12,7 +13,9 @@ use std::rc::Rc;
 use std::sync::{Mutex, PoisonError};
 use std::time::Instant;
 use sylva::scenes::editor;
-use sylva::systems::live::{LiveCommand, LiveRender, ShownImage};
+use sylva::scenes::editor::EditorAction;
+use sylva::systems::cluster::Cluster;
+use sylva::systems::live::{LiveCommand, LiveRender, SharedEdits, ShownImage, serve_live};
 use sylva::systems::profile::{FrameProfiler, ProfileLog};
 use sylva::systems::walkthrough::{
     FlyCamera, FlyInput, ScriptRecorder, ScriptStep, WalkthroughScript, overview_pose,
@@ -70,14 +73,75 @@ pub(crate) struct ViewArgs {
     /// print a summary table at the end; plot it with `sylva profile`.
     #[arg(long, value_name = "FILE.csv")]
     profile: Option<PathBuf>,
+    /// Under mpirun (a build with the `mpi` feature): the window on rank 0 and every
+    /// rank rendering each frame's tiles; camera moves and edits reach every rank.
+    #[arg(long)]
+    cluster: bool,
+    #[command(flatten)]
+    cluster_args: ClusterArgs,
 }
 
 /// Sent by the render thread when a frame is ready.
 #[derive(Debug)]
 struct FrameReady;
 
-/// Runs `sylva view`.
+/// Runs `sylva view`: the window, or under mpirun with `--cluster` the window on rank
+/// 0 and a renderer on every other rank.
 pub(crate) fn run(args: ViewArgs) -> Result<()> {
+    let mut node = Node::join(&args.cluster_args)?;
+    match (args.cluster, node.launched_by_mpi()) {
+        (true, false) if cfg!(feature = "mpi") => bail!(
+            "--cluster renders on the ranks of an MPI run: start it as `mpirun -np N sylva \
+             view --cluster …`"
+        ),
+        (true, false) => bail!(
+            "--cluster needs a sylva built with MPI: `cargo build --release --features mpi`, \
+             then `mpirun -np N target/release/sylva view --cluster …`"
+        ),
+        (false, true) => bail!(
+            "under mpirun, `sylva view` needs --cluster (one window on rank 0, every rank \
+             rendering); without it each rank would open a window of its own"
+        ),
+        _ => {}
+    }
+    let result = match node.leads() {
+        true => show(args, &mut node),
+        false => serve(&args, &mut node),
+    };
+    node.end(result)
+}
+
+/// A worker rank of `sylva view --cluster`: the scene as rank 0 builds it, rendered
+/// with rank 0 frame by frame, its edits applied alike, until the window closes.
+fn serve(args: &ViewArgs, node: &mut Node) -> Result<()> {
+    check_exposure(args.exposure)?;
+    let settings = ViewSettings {
+        env: args.env.clone(),
+        lights: args.lights,
+        exposure: args.exposure,
+        max_frames: args.max_frames,
+        save: args.save.clone(),
+        wake: None,
+        profile: None,
+    };
+    let built = build_scene(&settings, &args.scene, (args.width, args.height));
+    let (mut built, cluster) = node.agree_loaded(built)?;
+    let Some(cluster) = cluster else {
+        bail!("a rank other than 0 outside an MPI run");
+    };
+    // Only rank 0 shows the image: the display filter is its business.
+    built
+        .world
+        .entity_mut(built.facts.camera)
+        .remove::<sylva::engine::discontinuity::DiscontinuityFilter>();
+    if let Err(error) = serve_live(built.world, built.facts.camera, cluster) {
+        node.fail_with(&error);
+    }
+    Ok(())
+}
+
+/// The window (rank 0 of a cluster run, or the only process).
+fn show(args: ViewArgs, node: &mut Node) -> Result<()> {
     check_exposure(args.exposure)?;
     let script = match &args.script {
         Some(path) => {
@@ -125,31 +189,34 @@ pub(crate) fn run(args: ViewArgs) -> Result<()> {
         exposure: args.exposure,
         max_frames: args.max_frames,
         save: args.save.clone(),
-        wake: proxy,
+        wake: Some(proxy),
         profile: profile.clone(),
     });
-    let loaded = load_scene(&settings, &args.scene, (args.width, args.height))?;
+    let built = build_scene(&settings, &args.scene, (args.width, args.height));
+    let (built, cluster) = node.agree_loaded(built)?;
+    let clustered = cluster.is_some();
+    let loaded = start_scene(&settings, built, cluster)?;
     let font = ab_glyph::FontRef::try_from_slice(dejavu::sans::regular())
         .map_err(|e| anyhow::anyhow!("the HUD font does not load: {e}"))?;
     let mut app = App {
         live: loaded.live,
-        saving: Arc::new(loaded.saving),
+        saving: Arc::new(loaded.facts.saving),
         hud: Some(Hud {
             font,
-            triangles: loaded.triangles,
+            triangles: loaded.facts.triangles,
         }),
         hud_hidden: false,
         wind: false,
         map_shown: args.map,
-        camera: loaded.camera,
+        camera: loaded.facts.camera,
         modifiers: Modifiers::default(),
         press: None,
-        label: loaded.label,
-        size: (loaded.width, args.height),
+        label: loaded.facts.label,
+        size: (loaded.facts.width, args.height),
         window: None,
         surface: None,
         shown: None,
-        fly: FlyCamera::from_transform(&loaded.start_pose, loaded.speed),
+        fly: FlyCamera::from_transform(&loaded.facts.start_pose, loaded.facts.speed),
         held: HashSet::new(),
         look: glam::Vec2::ZERO,
         scroll: 0.0,
@@ -165,8 +232,8 @@ pub(crate) fn run(args: ViewArgs) -> Result<()> {
         }),
         screenshots: 0,
         error: None,
-        pose: loaded.start_pose,
-        views: [loaded.start_pose, loaded.overview],
+        pose: loaded.facts.start_pose,
+        views: [loaded.facts.start_pose, loaded.facts.overview],
         scene: args.scene.clone(),
         settings,
         status: None,
@@ -178,6 +245,7 @@ pub(crate) fn run(args: ViewArgs) -> Result<()> {
             .clone()
             .map(|path| (path, ScriptRecorder::default())),
         frames_out: args.frames_out.clone().map(FrameWriter::start),
+        clustered,
     };
     event_loop.run_app(&mut app)?;
     let written = app.frames_out.take().map(FrameWriter::finish).transpose();
@@ -207,6 +275,21 @@ pub(crate) fn run(args: ViewArgs) -> Result<()> {
     if let (Some(profile), Some(path)) = (&profile, &args.profile) {
         let mut log = profile.lock().unwrap_or_else(PoisonError::into_inner);
         finish_profile(&mut log, path, false);
+    }
+    if node.is_cluster() {
+        // The other ranks are told to quit as the render thread stops.
+        let failure = app.live.failure();
+        match app.live.stop() {
+            Some(world) => {
+                if let Some(line) = node.summary(&world) {
+                    println!("{line}");
+                }
+            }
+            None => bail!(
+                "the render thread failed: {}",
+                failure.unwrap_or_else(|| "no reason given".into())
+            ),
+        }
     }
     Ok(())
 }
@@ -264,15 +347,15 @@ struct ViewSettings {
     exposure: f32,
     max_frames: u32,
     save: Option<PathBuf>,
-    /// Wakes the event loop when the render thread has a frame.
-    wake: winit::event_loop::EventLoopProxy<FrameReady>,
+    /// Wakes the event loop when the render thread has a frame (none on the ranks that
+    /// only render).
+    wake: Option<winit::event_loop::EventLoopProxy<FrameReady>>,
     /// `--profile`: every shown frame of every scene opened is added to it.
     profile: Option<Arc<Mutex<ProfileLog>>>,
 }
 
-/// A scene loaded into a world with its render thread running.
-struct LoadedScene {
-    live: LiveRender,
+/// What the window needs to know of the scene it shows.
+struct SceneFacts {
     camera: Entity,
     start_pose: Transform,
     overview: Transform,
@@ -284,13 +367,35 @@ struct LoadedScene {
     label: String,
 }
 
+/// A scene built into a world, its render thread not yet started.
+struct BuiltScene {
+    world: World,
+    facts: SceneFacts,
+}
+
+/// A scene loaded into a world with its render thread running.
+struct LoadedScene {
+    live: LiveRender,
+    facts: SceneFacts,
+}
+
 /// Builds `scene` lit as `settings` say, sized `(width, height)`, and starts its render
 /// thread.
 fn load_scene(
     settings: &ViewSettings,
     scene_args: &SceneArgs,
-    (width, height): (Option<u32>, u32),
+    size: (Option<u32>, u32),
 ) -> Result<LoadedScene> {
+    start_scene(settings, build_scene(settings, scene_args, size)?, None)
+}
+
+/// Builds `scene` lit as `settings` say, sized `(width, height)`, at interactive quality;
+/// its editor actions arrive as shared edits.
+fn build_scene(
+    settings: &ViewSettings,
+    scene_args: &SceneArgs,
+    (width, height): (Option<u32>, u32),
+) -> Result<BuiltScene> {
     let mut world = World::new();
     let (scene, width, environment) = build_framed(
         &mut world,
@@ -336,16 +441,13 @@ fn load_scene(
     if settings.profile.is_some() {
         world.insert_resource(FrameProfiler::enabled());
     }
-    let wake = settings.wake.clone();
-    let live = LiveRender::start_profiled(
-        world,
-        spawned.camera,
-        settings.max_frames,
-        settings.profile.clone(),
-        move || {
-            let _ = wake.send_event(FrameReady);
+    let camera = spawned.camera;
+    world.insert_resource(SharedEdits(Arc::new(
+        move |world: &mut World, bytes: &[u8]| {
+            editor::EditorAction::from_bytes(bytes)?.apply(world, camera);
+            Ok(())
         },
-    )?;
+    )));
     let saving = Saving {
         source: match (&scene_args.gltf, scene_args.scene.as_str()) {
             (Some(_), _) => None,
@@ -362,16 +464,46 @@ fn load_scene(
             PathBuf::from(format!("{stem}-edited.toml"))
         }),
     };
+    Ok(BuiltScene {
+        world,
+        facts: SceneFacts {
+            camera,
+            start_pose,
+            overview,
+            triangles,
+            width,
+            speed: (extent * 0.05).clamp(1.0, 200.0),
+            saving,
+            label: scene_label(scene_args),
+        },
+    })
+}
+
+/// Starts the render thread of a built scene; on rank 0 of a cluster run with its
+/// `cluster`, which every frame is then shared out over.
+fn start_scene(
+    settings: &ViewSettings,
+    mut built: BuiltScene,
+    cluster: Option<Cluster>,
+) -> Result<LoadedScene> {
+    if let Some(cluster) = cluster {
+        built.world.insert_resource(cluster);
+    }
+    let wake = settings.wake.clone();
+    let live = LiveRender::start_profiled(
+        built.world,
+        built.facts.camera,
+        settings.max_frames,
+        settings.profile.clone(),
+        move || {
+            if let Some(wake) = &wake {
+                let _ = wake.send_event(FrameReady);
+            }
+        },
+    )?;
     Ok(LoadedScene {
         live,
-        camera: spawned.camera,
-        start_pose,
-        overview,
-        triangles,
-        width,
-        speed: (extent * 0.05).clamp(1.0, 200.0),
-        saving,
-        label: scene_label(scene_args),
+        facts: built.facts,
     })
 }
 
@@ -464,6 +596,8 @@ struct App {
     recorder: Option<(PathBuf, ScriptRecorder)>,
     /// `--frames-out`: the writer of every shown frame.
     frames_out: Option<FrameWriter>,
+    /// Every rank of an MPI run renders (`--cluster`): the scene cannot be switched.
+    clustered: bool,
 }
 
 /// Writes shown frames as numbered PNGs on a thread of its own, so the window does not
@@ -772,72 +906,6 @@ fn current_memory_bytes() -> Option<u64> {
     Some(kb * 1024)
 }
 
-/// Simulated seconds of wind per rendered frame: about real time at the interactive
-/// frame rates of the larger scenes.
-const WIND_FRAME_SECONDS: f64 = 0.1;
-
-/// An editor operation the render thread runs on the world between frames.
-#[derive(Clone, Copy, Debug, PartialEq)]
-enum EditorAction {
-    Select(u32, u32),
-    Insert(u32, u32),
-    Move(u32, u32),
-    Delete,
-    Undo,
-    Redo,
-    /// Wind on or off.
-    Wind(bool),
-    /// Select this plant (from the map).
-    SelectPlant(Entity),
-    /// Select the plant whose crown covers a ground position (x, z) (a script's map
-    /// click).
-    SelectAtGround(f32, f32),
-    /// Plant at a ground position (x, z) (from the map).
-    InsertAtGround(f32, f32),
-    /// Move the selection to a ground position (x, z) (from the map).
-    MoveToGround(f32, f32),
-}
-
-impl EditorAction {
-    fn command(self, camera: Entity) -> LiveCommand {
-        LiveCommand::Edit(Arc::new(move |world: &mut World| match self {
-            EditorAction::Select(x, y) => {
-                editor::select_at(world, camera, (x, y));
-            }
-            EditorAction::SelectPlant(plant) => {
-                editor::select(world, Some(plant));
-            }
-            EditorAction::SelectAtGround(x, z) => {
-                editor::select_at_ground(world, (x, z));
-            }
-            EditorAction::InsertAtGround(x, z) => {
-                editor::insert_at_ground(world, (x, z));
-            }
-            EditorAction::MoveToGround(x, z) => {
-                editor::move_selected_to_ground(world, (x, z));
-            }
-            EditorAction::Insert(x, y) => {
-                editor::insert_at(world, camera, (x, y));
-            }
-            EditorAction::Move(x, y) => {
-                editor::move_selected_to(world, camera, (x, y));
-            }
-            EditorAction::Delete => {
-                editor::delete_selected(world);
-            }
-            EditorAction::Undo => {
-                editor::undo(world);
-            }
-            EditorAction::Redo => {
-                editor::redo(world);
-            }
-            EditorAction::Wind(on) => {
-                editor::set_wind(world, on, WIND_FRAME_SECONDS);
-            }
-        }))
-    }
-}
-
 impl App {
     /// Sends an editor action the user made (recorded with `--record`); its sequence
     /// number.
@@ -893,7 +961,7 @@ impl App {
             },
         };
         self.record(step);
-        self.live.send(action.command(self.camera))
+        self.live.send(LiveCommand::Shared(action.to_bytes()))
     }
 
     /// Records `step` with `--record`, at the pose last sent.
@@ -908,6 +976,17 @@ impl App {
     /// that fails to load leaves the shown one running and its error on the HUD.
     /// Returns the sequence number a step waits for.
     fn switch_scene(&mut self, scene: SceneArgs) -> u64 {
+        if self.clustered {
+            let message = format!(
+                "{}: switching scenes is not available with --cluster (kept {})",
+                scene_label(&scene),
+                self.label
+            );
+            eprintln!("error: {message}");
+            self.status = Some(message);
+            self.update_title();
+            return self.live.last_sent();
+        }
         let loaded = match load_scene(&self.settings, &scene, (Some(self.size.0), self.size.1)) {
             Ok(loaded) => loaded,
             Err(e) => {
@@ -919,12 +998,12 @@ impl App {
             }
         };
         self.live = loaded.live;
-        self.camera = loaded.camera;
-        self.views = [loaded.start_pose, loaded.overview];
-        self.saving = Arc::new(loaded.saving);
-        self.label = loaded.label;
+        self.camera = loaded.facts.camera;
+        self.views = [loaded.facts.start_pose, loaded.facts.overview];
+        self.saving = Arc::new(loaded.facts.saving);
+        self.label = loaded.facts.label;
         if let Some(hud) = &mut self.hud {
-            hud.triangles = loaded.triangles;
+            hud.triangles = loaded.facts.triangles;
         }
         self.scene = scene;
         self.status = None;
@@ -1145,7 +1224,8 @@ impl App {
                     ];
                     let mut command = command;
                     for action in actions.into_iter().flatten() {
-                        let Some(number) = self.live.send(action.command(self.camera)) else {
+                        let Some(number) = self.live.send(LiveCommand::Shared(action.to_bytes()))
+                        else {
                             return self.fail(event_loop, anyhow::anyhow!("the renderer stopped"));
                         };
                         command = number;

@@ -4,7 +4,14 @@
 //! the latest one. Accumulation restarts when the camera moves (the `Accumulate` stage
 //! sees the changed transform) and stops at a frame limit, after which the thread sleeps
 //! until the next command.
+//!
+//! On a cluster ([`Cluster`] resource on rank 0, [`serve_live`] on the other ranks)
+//! every rank holds the same world: rank 0's thread sends each batch of camera moves and
+//! [`LiveCommand::Shared`] edits to the others before the frame that shows them, every
+//! rank applies them in the same order through the same ECS change detection, and the
+//! frame's tiles are shared out; a frame given up on rank 0 is given up everywhere.
 
+use crate::cluster::{Cluster, ClusterError, LiveStep};
 use crate::picking::{MapPlant, Selected, map_plants};
 use crate::profile::{FrameProfiler, ProfileLog};
 use crate::progressive::{StopAt, refine};
@@ -107,10 +114,102 @@ pub enum LiveCommand {
     /// Place the camera (restarts accumulation).
     Pose(Transform),
     /// Run a closure on the world between frames (edits, quality changes); changes it
-    /// makes restart accumulation as any ECS change does.
+    /// makes restart accumulation as any ECS change does. On a cluster it runs on rank 0
+    /// only: what every rank must do alike is a [`Shared`](Self::Shared) edit.
     Edit(Arc<dyn Fn(&mut World) + Send + Sync>),
+    /// An edit given as bytes, applied by the world's [`SharedEdits`] between frames on
+    /// this process and, on a cluster, on every rank alike.
+    Shared(Vec<u8>),
     /// Stop rendering and hand the world back.
     Quit,
+}
+
+/// The function that applies a [`LiveCommand::Shared`] edit from its bytes (the same on
+/// every rank; an error says what could not be applied, and is the same on every rank).
+pub type SharedEditFn = dyn Fn(&mut World, &[u8]) -> Result<(), String> + Send + Sync;
+
+/// How this world applies [`LiveCommand::Shared`] edits: insert it before starting a
+/// live render that is sent them.
+#[derive(Resource, Clone)]
+pub struct SharedEdits(pub Arc<SharedEditFn>);
+
+/// Runs a live render's systems one after another on its own thread instead of on
+/// bevy's task pool (tiles still render on the world's render pool). Ranks of a
+/// cluster run as threads of one process need it: bevy's pool is one per process, and
+/// ranks waiting for each other inside their frames could hold all of its threads.
+#[derive(Resource, Clone, Copy, Debug, Default)]
+pub struct SingleThreadedSystems;
+
+/// The frame schedule, on the executor `world` asks for.
+fn live_schedule(world: &World) -> Schedule {
+    let mut schedule = frame_schedule();
+    if world.contains_resource::<SingleThreadedSystems>() {
+        schedule.set_executor(bevy_ecs::schedule::SingleThreadedExecutor::new());
+    }
+    schedule
+}
+
+/// The first byte of an edit on the wire: a camera pose.
+const POSE_EDIT: u8 = 0;
+/// The first byte of an edit on the wire: a [`LiveCommand::Shared`] edit.
+const SHARED_EDIT: u8 = 1;
+
+/// A pose as the bytes of its ten floats (bits, so every rank gets the same pose).
+fn encode_pose(pose: &Transform) -> Vec<u8> {
+    let floats = pose
+        .translation
+        .to_array()
+        .into_iter()
+        .chain(pose.rotation.to_array())
+        .chain(pose.scale.to_array());
+    std::iter::once(POSE_EDIT)
+        .chain(floats.flat_map(|f| f.to_bits().to_le_bytes()))
+        .collect()
+}
+
+fn decode_pose(bytes: &[u8]) -> Option<Transform> {
+    let floats: Vec<f32> = bytes
+        .chunks_exact(4)
+        .map(|c| f32::from_bits(u32::from_le_bytes(c.try_into().expect("four bytes"))))
+        .collect();
+    (bytes.len() == 40).then(|| Transform {
+        translation: glam::Vec3::from_slice(&floats[0..3]),
+        rotation: glam::Quat::from_slice(&floats[3..7]),
+        scale: glam::Vec3::from_slice(&floats[7..10]),
+    })
+}
+
+/// Places `camera` at `pose`, touching it only when it moves (an unchanged pose keeps
+/// the film accumulating).
+fn place_camera(world: &mut World, camera: Entity, pose: Transform) {
+    if let Some(mut transform) = world.get_mut::<Transform>(camera)
+        && *transform != pose
+    {
+        *transform = pose;
+    }
+}
+
+/// Applies a shared edit's bytes with the world's [`SharedEdits`].
+fn apply_shared(world: &mut World, bytes: &[u8]) {
+    let outcome = match world.get_resource::<SharedEdits>().cloned() {
+        Some(edits) => (edits.0)(world, bytes),
+        None => Err("this world applies no shared edits (insert SharedEdits)".into()),
+    };
+    if let Err(error) = outcome {
+        tracing::warn!(%error, "an edit was not applied");
+    }
+}
+
+/// Applies an edit as it came over the wire (a pose or a shared edit).
+fn apply_encoded(world: &mut World, camera: Entity, bytes: &[u8]) {
+    match bytes.split_first() {
+        Some((&POSE_EDIT, pose)) => match decode_pose(pose) {
+            Some(pose) => place_camera(world, camera, pose),
+            None => tracing::warn!(bytes = bytes.len(), "a camera pose could not be read"),
+        },
+        Some((&SHARED_EDIT, edit)) => apply_shared(world, edit),
+        _ => tracing::warn!(bytes = bytes.len(), "an edit of an unknown kind"),
+    }
 }
 
 /// The render thread's handle: commands in, the latest frame out.
@@ -172,20 +271,19 @@ impl LiveRender {
                         &frame_ready,
                     )
                 }));
-                match rendered {
-                    Ok(world) => Some(world),
-                    Err(panic) => {
-                        let message = panic
-                            .downcast_ref::<&str>()
-                            .map(|s| s.to_string())
-                            .or_else(|| panic.downcast_ref::<String>().cloned())
-                            .unwrap_or_else(|| "a panic without a message".into());
-                        *failed.lock().unwrap_or_else(PoisonError::into_inner) = Some(message);
-                        // Wake the window: no frame will come, and it must not wait for one.
-                        frame_ready();
-                        None
-                    }
-                }
+                let message = match rendered {
+                    Ok(Ok(world)) => return Some(world),
+                    Ok(Err(error)) => error.to_string(),
+                    Err(panic) => panic
+                        .downcast_ref::<&str>()
+                        .map(|s| s.to_string())
+                        .or_else(|| panic.downcast_ref::<String>().cloned())
+                        .unwrap_or_else(|| "a panic without a message".into()),
+                };
+                *failed.lock().unwrap_or_else(PoisonError::into_inner) = Some(message);
+                // Wake the window: no frame will come, and it must not wait for one.
+                frame_ready();
+                None
             })?;
         Ok(Self {
             commands,
@@ -222,8 +320,8 @@ impl LiveRender {
             .clone()
     }
 
-    /// The message of the panic that ended the render thread, if it ended so (the window
-    /// is woken when it does).
+    /// Why the render thread ended early, if it did: its panic's message, or its
+    /// cluster's error (the window is woken when it does).
     pub fn failure(&self) -> Option<String> {
         self.failure
             .lock()
@@ -240,7 +338,7 @@ impl LiveRender {
     }
 
     /// Stops the thread after the frame in progress and returns the world; `None` when
-    /// the thread panicked.
+    /// the thread failed ([`failure`](Self::failure)).
     pub fn stop(mut self) -> Option<World> {
         let _ = self.commands.send((u64::MAX, LiveCommand::Quit));
         self.cancel.store(true, Ordering::SeqCst);
@@ -258,22 +356,90 @@ impl Drop for LiveRender {
     }
 }
 
-/// Applies one command; false on `Quit`.
-fn apply(world: &mut World, camera: Entity, command: LiveCommand) -> bool {
+/// What applying a command asks of the other ranks of a cluster.
+enum Applied {
+    /// Nothing: the command changed only this process's world, or nothing.
+    Here,
+    /// To apply these bytes alike.
+    Everywhere(Vec<u8>),
+    /// To quit.
+    Quit,
+}
+
+/// Applies one command.
+fn apply(world: &mut World, camera: Entity, command: LiveCommand) -> Applied {
     match command {
         LiveCommand::Pose(pose) => {
-            if let Some(mut transform) = world.get_mut::<Transform>(camera)
-                && *transform != pose
-            {
-                *transform = pose;
-            }
-            true
+            place_camera(world, camera, pose);
+            Applied::Everywhere(encode_pose(&pose))
         }
         LiveCommand::Edit(edit) => {
             edit(world);
-            true
+            Applied::Here
         }
-        LiveCommand::Quit => false,
+        LiveCommand::Shared(bytes) => {
+            apply_shared(world, &bytes);
+            Applied::Everywhere(std::iter::once(SHARED_EDIT).chain(bytes).collect())
+        }
+        LiveCommand::Quit => Applied::Quit,
+    }
+}
+
+/// Rank 0 of a cluster tells the others what comes next (nothing without a cluster).
+fn announce(world: &mut World, edits: &[Vec<u8>], next: LiveStep) -> Result<(), ClusterError> {
+    match world.get_resource_mut::<Cluster>() {
+        Some(mut cluster) if cluster.leads() => {
+            let announced = cluster.announce(edits, next);
+            if let Err(error) = &announced {
+                cluster.abandon(&error.to_string());
+            }
+            announced
+        }
+        _ => Ok(()),
+    }
+}
+
+/// Renders one frame of `camera` (given up, or not); the cluster's failure if the frame
+/// ended the run.
+fn one_frame(
+    world: &mut World,
+    schedule: &mut Schedule,
+    camera: Entity,
+) -> Result<crate::progressive::Progress, ClusterError> {
+    let (_, progress) = refine(world, schedule, camera, &StopAt::default(), |_, _| {
+        crate::progressive::Flow::Stop
+    });
+    match world.get_resource::<Cluster>().and_then(Cluster::failure) {
+        Some(failure) => Err(failure.clone()),
+        None => Ok(progress),
+    }
+}
+
+/// A worker rank's side of a live render on a cluster (rank 0 runs [`LiveRender`] with
+/// `cluster` in its world): applies rank 0's edits in its order and renders every frame
+/// with it, until rank 0 quits (the world is returned) or the run fails. `world` is set
+/// up as rank 0's, with the same [`SharedEdits`].
+pub fn serve_live(
+    mut world: World,
+    camera: Entity,
+    cluster: Cluster,
+) -> Result<World, ClusterError> {
+    world.insert_resource(cluster);
+    let mut schedule = live_schedule(&world);
+    loop {
+        let (edits, next) = world.resource_mut::<Cluster>().await_step()?;
+        for edit in &edits {
+            apply_encoded(&mut world, camera, edit);
+        }
+        match next {
+            LiveStep::Idle => {}
+            LiveStep::Quit => return Ok(world),
+            LiveStep::Render => {
+                one_frame(&mut world, &mut schedule, camera)?;
+                // A frame rank 0 gave up stopped this one too: on to the next.
+                world.resource_mut::<Cluster>().resume();
+            }
+        }
     }
 }
 
@@ -288,9 +454,11 @@ fn run(
     (inbox, cancel): (Receiver<(u64, LiveCommand)>, &AtomicBool),
     (published, log, mut profile): (&Mutex<Option<ShownImage>>, &Mutex<FrameLog>, SharedProfile),
     frame_ready: impl Fn(),
-) -> World {
-    let mut schedule = frame_schedule();
+) -> Result<World, ClusterError> {
+    let mut schedule = live_schedule(&world);
     let mut applied = 0;
+    // Edits the other ranks of a cluster have not been sent yet.
+    let mut unsent: Vec<Vec<u8>> = Vec::new();
     let mut given_up = false;
     // The map, and the top-level build and refit counts it was made at.
     let mut map: (Arc<Vec<MapPlant>>, Option<(u64, u64)>) = (Arc::default(), None);
@@ -305,8 +473,15 @@ fn run(
         let first = if converged {
             match inbox.recv_timeout(Duration::from_millis(250)) {
                 Ok(command) => Some(command),
-                Err(RecvTimeoutError::Timeout) => continue,
-                Err(RecvTimeoutError::Disconnected) => return world,
+                Err(RecvTimeoutError::Timeout) => {
+                    // The other ranks wait for the next frame: a sign of life.
+                    announce(&mut world, &[], LiveStep::Idle)?;
+                    continue;
+                }
+                Err(RecvTimeoutError::Disconnected) => {
+                    announce(&mut world, &unsent, LiveStep::Quit)?;
+                    return Ok(world);
+                }
             }
         } else {
             None
@@ -315,20 +490,21 @@ fn run(
         // coming frame, which would not show it.
         cancel.store(false, Ordering::SeqCst);
         for (number, command) in first.into_iter().chain(inbox.try_iter()) {
-            if !apply(&mut world, camera, command) {
-                return world;
+            match apply(&mut world, camera, command) {
+                Applied::Here => {}
+                Applied::Everywhere(edit) => unsent.push(edit),
+                Applied::Quit => {
+                    announce(&mut world, &unsent, LiveStep::Quit)?;
+                    return Ok(world);
+                }
             }
             applied = number;
         }
+        announce(&mut world, &unsent, LiveStep::Render)?;
+        unsent.clear();
         // One frame, whether or not it restarted the film; nothing to show when it was
         // given up.
-        let (_, progress) = refine(
-            &mut world,
-            &mut schedule,
-            camera,
-            &StopAt::default(),
-            |_, _| crate::progressive::Flow::Stop,
-        );
+        let progress = one_frame(&mut world, &mut schedule, camera)?;
         given_up = progress.cancelled > 0;
         if given_up {
             log.lock().unwrap_or_else(PoisonError::into_inner).cancelled += 1;
@@ -350,7 +526,8 @@ fn run(
         }
         let shown_start = std::time::Instant::now();
         let Some(film) = world.get::<Film>(camera) else {
-            return world;
+            announce(&mut world, &[], LiveStep::Quit)?;
+            return Ok(world);
         };
         let exposure = world.get::<Camera>(camera).map_or(0.0, |c| c.exposure);
         let tone_map_start = std::time::Instant::now();

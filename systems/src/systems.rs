@@ -530,6 +530,7 @@ pub fn render_tiles(
                     checks,
                     &|tile| render_tile(&scene, &view, &params, tile, frame_index),
                     &on_tile,
+                    cancel.0.as_deref(),
                 )
             }
             None => pool.install(|| {

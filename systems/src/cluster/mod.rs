@@ -180,6 +180,27 @@ impl ClusterCounters {
     }
 }
 
+/// What a live render's workers do after applying the edits of a [`Cluster::announce`].
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum LiveStep {
+    /// Render the next frame with rank 0.
+    Render,
+    /// Nothing: rank 0 is idle and says it is still there.
+    Idle,
+    /// The window closed: leave the loop.
+    Quit,
+}
+
+/// How a frame shared out ended on rank 0.
+enum LeadEnd {
+    /// Every tile is back.
+    Done(Vec<TileResult>),
+    /// The stop flag ended the run.
+    Stopped,
+    /// The frame was given up for a newer one (the cancel flag).
+    Cancelled,
+}
+
 /// Renders one tile of the frame being shared out.
 pub type TileRenderer<'a> = dyn Fn(Tile) -> TileResult + Sync + 'a;
 
@@ -315,13 +336,95 @@ impl Cluster {
     /// flag is set) and leave the frame they stood ready for. Does nothing elsewhere.
     pub fn finish(&mut self) -> Result<(), ClusterError> {
         if self.leads() {
-            for rank in 1..self.size() {
-                self.send(rank, &Message::Stop)?;
-            }
-            self.phase += 1;
-            self.deferred.clear();
+            self.end_phase()?;
         }
         Ok(())
+    }
+
+    /// Rank 0 tells every worker to leave the job it is on or stands ready for.
+    fn end_phase(&mut self) -> Result<(), ClusterError> {
+        let next_job = self.next_job;
+        for rank in 1..self.size() {
+            self.send(rank, &Message::Stop { next_job })?;
+        }
+        self.phase += 1;
+        self.deferred.clear();
+        Ok(())
+    }
+
+    /// Rank 0 of a live render sends every worker the edits it applied since the last
+    /// step, in order, and what to do next: render a frame with it, nothing (a sign of
+    /// life while it idles, more often than the time limit), or quit. On quit it waits
+    /// until every worker has left, taking what they still send (tiles of a frame given
+    /// up): a worker must not be left blocked in a send to a rank that has gone.
+    pub fn announce(&mut self, edits: &[Vec<u8>], next: LiveStep) -> Result<(), ClusterError> {
+        let message = Message::Step {
+            edits: edits.to_vec(),
+            next,
+        };
+        for rank in 1..self.size() {
+            self.send(rank, &message)?;
+        }
+        if next != LiveStep::Quit {
+            return Ok(());
+        }
+        let mut left = vec![false; self.size()];
+        left[0] = true;
+        let start = Instant::now();
+        while let Some(rank) = left.iter().position(|l| !l) {
+            match self.receive()? {
+                Some((rank, Message::Left)) => left[rank] = true,
+                Some((rank, Message::Fail { text })) => {
+                    return Err(ClusterError::Failed { rank, error: text });
+                }
+                Some(_) => {}
+                None => {
+                    self.check_silence(rank, start.elapsed(), 0)?;
+                    std::thread::sleep(POLL);
+                }
+            }
+        }
+        Ok(())
+    }
+
+    /// A worker of a live render waits for rank 0's next step: the edits to apply and
+    /// what to do then (a quit is answered at once: rank 0 waits for it). Failures (rank 0 silent for longer than the time limit, or its
+    /// error) are returned and remembered.
+    pub fn await_step(&mut self) -> Result<(Vec<Vec<u8>>, LiveStep), ClusterError> {
+        let start = Instant::now();
+        let step = loop {
+            match self.receive() {
+                Ok(Some((0, Message::Step { edits, next }))) => {
+                    if next == LiveStep::Quit
+                        && let Err(error) = self.send(0, &Message::Left)
+                    {
+                        break Err(error);
+                    }
+                    break Ok((edits, next));
+                }
+                // The frame a stop gave up had ended here already: nothing to leave.
+                Ok(Some((0, Message::Stop { next_job }))) => {
+                    self.next_job = next_job;
+                    self.phase += 1;
+                }
+                Ok(Some((rank, Message::Fail { text }))) => {
+                    break Err(ClusterError::Failed { rank, error: text });
+                }
+                Ok(Some((rank, message))) => break Err(unexpected(rank, &message)),
+                Ok(None) => {
+                    if let Err(error) = self.check_silence(0, start.elapsed(), 0) {
+                        break Err(error);
+                    }
+                    std::thread::sleep(POLL);
+                }
+                Err(error) => break Err(error),
+            }
+        };
+        if let Err(error) = &step {
+            self.failure = Some(error.clone());
+            self.stop.store(true, Ordering::SeqCst);
+        }
+        step
     }
 
     /// A worker goes on into rank 0's next phase after [`finish`](Self::finish) ended
@@ -389,6 +492,7 @@ impl Cluster {
         checks: FrameChecks,
         render: &TileRenderer,
         on_tile: &(dyn Fn(&Tile, Duration) + Sync),
+        cancel: Option<&AtomicBool>,
     ) -> Option<FrameBuffer> {
         if self.failure.is_some() {
             return None;
@@ -398,20 +502,25 @@ impl Cluster {
             ..ClusterCounters::default()
         };
         let outcome = if self.leads() {
-            self.lead(pool, tiles, checks, render, on_tile)
+            self.lead(pool, tiles, checks, render, on_tile, cancel)
         } else {
             self.serve(pool, tiles, checks, render)
+                .map(|served| match served {
+                    Some(results) => LeadEnd::Done(results),
+                    None => LeadEnd::Stopped,
+                })
         };
         self.total.add(&self.last_frame);
         match outcome {
-            Ok(Some(results)) => {
+            Ok(LeadEnd::Done(results)) => {
                 let mut frame = FrameBuffer::new(width, height, checks.frame);
                 for result in &results {
                     frame.write_tile(result);
                 }
                 Some(frame)
             }
-            Ok(None) => {
+            Ok(LeadEnd::Cancelled) => None,
+            Ok(LeadEnd::Stopped) => {
                 self.stop.store(true, Ordering::SeqCst);
                 None
             }
@@ -425,8 +534,8 @@ impl Cluster {
     }
 
     /// Rank 0's side of a frame: its own threads take runs of tiles from the same
-    /// counter the workers are served from. `None` when the stop flag was set (Ctrl-C)
-    /// meanwhile.
+    /// counter the workers are served from. Ends early when the stop flag is set
+    /// (Ctrl-C) or `cancel` is (the frame is given up on every rank).
     fn lead(
         &mut self,
         pool: &rayon::ThreadPool,
@@ -434,7 +543,8 @@ impl Cluster {
         checks: FrameChecks,
         render: &TileRenderer,
         on_tile: &(dyn Fn(&Tile, Duration) + Sync),
-    ) -> Result<Option<Vec<TileResult>>, ClusterError> {
+        cancel: Option<&AtomicBool>,
+    ) -> Result<LeadEnd, ClusterError> {
         let job = self.next_job;
         self.next_job += 1;
         let next = AtomicUsize::new(0);
@@ -479,32 +589,35 @@ impl Cluster {
                 });
             }
             drop(sender);
-            let outcome = self.lead_loop(&mut lead, &local, &local_busy, on_tile);
+            let outcome = self.lead_loop(&mut lead, &local, &local_busy, on_tile, cancel);
             give_up.store(true, Ordering::Relaxed);
             outcome
         });
-        match outcome {
-            Ok(true) => {
+        Ok(match outcome? {
+            LoopEnd::Done => {
                 let results = lead
                     .results
                     .into_iter()
                     .map(|r| r.expect("every tile came back"));
-                Ok(Some(results.collect()))
+                LeadEnd::Done(results.collect())
             }
-            Ok(false) => Ok(None),
-            Err(error) => Err(error),
-        }
+            LoopEnd::Stopped => LeadEnd::Stopped,
+            LoopEnd::Cancelled => LeadEnd::Cancelled,
+        })
     }
 
     /// Polls local results and messages until every tile is back and every worker has
-    /// been told the frame is done; `Ok(false)` when the stop flag ends it first.
+    /// been told the frame is done, or the stop flag or `cancel` ends it first. A
+    /// frame is given up only before any worker has been told it is done, so that
+    /// every rank gives it up (a worker told so has already kept it).
     fn lead_loop(
         &mut self,
         lead: &mut Lead,
         local: &mpsc::Receiver<(usize, TileResult)>,
         local_busy: &AtomicUsize,
         on_tile: &(dyn Fn(&Tile, Duration) + Sync),
-    ) -> Result<bool, ClusterError> {
+        cancel: Option<&AtomicBool>,
+    ) -> Result<LoopEnd, ClusterError> {
         let start = Instant::now();
         for state in &mut lead.workers {
             state.last_heard = start;
@@ -533,10 +646,15 @@ impl Cluster {
                 if let Some(since) = waiting_since {
                     self.last_frame.waited += since.elapsed();
                 }
-                return Ok(true);
+                return Ok(LoopEnd::Done);
             }
             if self.stop.load(Ordering::SeqCst) {
-                return Ok(false);
+                return Ok(LoopEnd::Stopped);
+            }
+            let none_told = lead.workers.iter().all(|w| !w.done_sent);
+            if none_told && cancel.is_some_and(|c| c.load(Ordering::SeqCst)) {
+                self.end_phase()?;
+                return Ok(LoopEnd::Cancelled);
             }
             if progressed {
                 continue;
@@ -602,6 +720,8 @@ impl Cluster {
                 }
                 self.assign(lead, rank, want)?;
             }
+            // Tiles of a frame given up: sent before the worker heard so.
+            Message::Result { job, .. } if job < lead.job => {}
             Message::Result {
                 job,
                 first,
@@ -692,6 +812,8 @@ impl Cluster {
         type Run = (usize, Vec<(u64, TileResult)>);
         let (sender, local) = mpsc::channel::<Run>();
         let mut mine = Vec::new();
+        let give_up = AtomicBool::new(false);
+        let give_up = &give_up;
         pool.in_place_scope(|scope| {
             let mut in_flight = 0usize;
             let mut done = false;
@@ -720,14 +842,16 @@ impl Cluster {
                                 in_flight += 1;
                                 let sender = sender.clone();
                                 scope.spawn(move |_| {
-                                    let rendered = run
-                                        .iter()
-                                        .map(|&tile| {
-                                            let start = Instant::now();
-                                            let result = render(tile);
-                                            (start.elapsed().as_nanos() as u64, result)
-                                        })
-                                        .collect();
+                                    let mut rendered = Vec::with_capacity(run.len());
+                                    for &tile in run {
+                                        // A frame given up: the scope ends at the next tile.
+                                        if give_up.load(Ordering::Relaxed) {
+                                            return;
+                                        }
+                                        let start = Instant::now();
+                                        let result = render(tile);
+                                        rendered.push((start.elapsed().as_nanos() as u64, result));
+                                    }
                                     let _ = sender.send((first, rendered));
                                 });
                             }
@@ -737,10 +861,11 @@ impl Cluster {
                             done = true;
                             break;
                         }
-                        Message::Stop if rank == 0 => {
-                            // The job this worker stood ready for never runs.
-                            self.next_job -= 1;
+                        Message::Stop { next_job } if rank == 0 => {
+                            // The job this worker is on, or stood ready for, ends here.
+                            self.next_job = next_job;
                             self.phase += 1;
+                            give_up.store(true, Ordering::Relaxed);
                             return Ok(None);
                         }
                         Message::Fail { text } => {
@@ -844,14 +969,23 @@ fn unexpected(rank: usize, message: &Message) -> ClusterError {
         Message::Tiles { .. } => "tiles",
         Message::Result { .. } => "a tile",
         Message::Done { .. } => "a frame end",
-        Message::Stop => "a stop",
+        Message::Stop { .. } => "a stop",
         Message::Share { .. } => "a shared value",
+        Message::Step { .. } => "a live step",
+        Message::Left => "a farewell",
         Message::Fail { .. } => "a failure",
     };
     ClusterError::Protocol {
         rank,
         problem: format!("{name} arrived out of turn"),
     }
+}
+
+/// How rank 0's polling of a frame ended.
+enum LoopEnd {
+    Done,
+    Stopped,
+    Cancelled,
 }
 
 /// Rank 0's view of one worker during a frame.
@@ -924,27 +1058,39 @@ pub fn view_hash(view: &impl std::fmt::Debug, params: &impl std::fmt::Debug) -> 
 }
 
 /// Ranks as threads of one process, joined by channels: the protocol without MPI. As
-/// with MPI, a message to a rank whose thread has ended is delivered and never read.
+/// with MPI, a message to a rank whose thread has ended is delivered and never read,
+/// and (with [`mesh_with_eager_limit`](Self::mesh_with_eager_limit)) a large message's
+/// send waits until the rank takes it, as MPI's rendezvous sends do.
 /// bevy's task pool is one per process, so each rank's schedule should run on the
 /// single-threaded executor: blocked in `render_tiles` waiting for each other, ranks
 /// would otherwise hold all of the pool's threads.
 pub struct ChannelTransport {
     rank: usize,
+    eager_limit: usize,
     senders: Vec<mpsc::Sender<Envelope>>,
     receivers: Arc<Vec<Mutex<mpsc::Receiver<Envelope>>>>,
 }
 
-/// A message's bytes and the rank that sent them.
-type Envelope = (usize, Vec<u8>);
+/// A message's bytes, the rank that sent them, and the sender waiting for it to be
+/// taken (a rendezvous send).
+type Envelope = (usize, Vec<u8>, Option<mpsc::SyncSender<()>>);
 
 impl ChannelTransport {
-    /// `size` transports that reach each other, one per rank.
+    /// `size` transports that reach each other, one per rank; every send returns at
+    /// once.
     pub fn mesh(size: usize) -> Vec<ChannelTransport> {
+        Self::mesh_with_eager_limit(size, usize::MAX)
+    }
+
+    /// [`mesh`](Self::mesh) whose sends of more than `eager_limit` bytes wait until the
+    /// receiving rank takes the message (as MPI's large sends do).
+    pub fn mesh_with_eager_limit(size: usize, eager_limit: usize) -> Vec<ChannelTransport> {
         let (senders, receivers): (Vec<_>, Vec<_>) = (0..size).map(|_| mpsc::channel()).unzip();
         let receivers = Arc::new(receivers.into_iter().map(Mutex::new).collect::<Vec<_>>());
         (0..size)
             .map(|rank| ChannelTransport {
                 rank,
+                eager_limit,
                 senders: senders.clone(),
                 receivers: receivers.clone(),
             })
@@ -962,14 +1108,31 @@ impl Transport for ChannelTransport {
     }
 
     fn send(&self, to: usize, bytes: &[u8]) -> Result<(), String> {
-        self.senders
+        let sender = self
+            .senders
             .get(to)
-            .ok_or_else(|| format!("there is no rank {to}"))?
-            .send((self.rank, bytes.to_vec()))
-            .map_err(|_| "the rank has ended".to_owned())
+            .ok_or_else(|| format!("there is no rank {to}"))?;
+        let (taken, wait) = match bytes.len() > self.eager_limit {
+            true => {
+                let (taken, wait) = mpsc::sync_channel(1);
+                (Some(taken), Some(wait))
+            }
+            false => (None, None),
+        };
+        sender
+            .send((self.rank, bytes.to_vec(), taken))
+            .map_err(|_| "the rank has ended".to_owned())?;
+        if let Some(wait) = wait {
+            wait.recv().map_err(|_| "the rank has ended".to_owned())?;
+        }
+        Ok(())
     }
 
     fn try_receive(&self) -> Option<(usize, Vec<u8>)> {
-        self.receivers[self.rank].lock().ok()?.try_recv().ok()
+        let (rank, bytes, taken) = self.receivers[self.rank].lock().ok()?.try_recv().ok()?;
+        if let Some(taken) = taken {
+            let _ = taken.send(());
+        }
+        Some((rank, bytes))
     }
 }

@@ -7,6 +7,8 @@ use sylva_engine::bvh::TraversalStats;
 use sylva_engine::film::{Tile, TileResult};
 use sylva_engine::render::SurfaceGuide;
 
+use super::LiveStep;
+
 /// What every rank must agree on before a frame's tiles are shared out: equal checks
 /// mean equal inputs to `render_tile`, hence equal tiles whoever renders them.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
@@ -47,12 +49,19 @@ pub(crate) enum Message {
     },
     /// No more tiles of job `job` for this worker: it has returned all it was given.
     Done { job: u64 },
-    /// The run is over: workers leave their loop.
-    Stop,
+    /// The run or a phase of it is over, or the frame in progress is given up: workers
+    /// leave the job they are on (or stood ready for); the next job rank 0 starts is
+    /// `next_job`.
+    Stop { next_job: u64 },
     /// The sender ends the run because of this error.
     Fail { text: String },
     /// A value rank 0 decided, for every rank to act on alike.
     Share { value: u64 },
+    /// Rank 0's changes to the world (each an opaque edit the live render encodes), in
+    /// order, and what to do after applying them.
+    Step { edits: Vec<Vec<u8>>, next: LiveStep },
+    /// A worker has left the live render (its answer to [`LiveStep::Quit`]).
+    Left,
 }
 
 /// A message that could not be read.
@@ -118,7 +127,10 @@ impl Message {
                 out.u8(5);
                 out.u64(*job);
             }
-            Message::Stop => out.u8(6),
+            Message::Stop { next_job } => {
+                out.u8(6);
+                out.u64(*next_job);
+            }
             Message::Fail { text } => {
                 out.u8(7);
                 out.text(text);
@@ -127,6 +139,19 @@ impl Message {
                 out.u8(8);
                 out.u64(*value);
             }
+            Message::Step { edits, next } => {
+                out.u8(9);
+                out.u8(match next {
+                    LiveStep::Render => 0,
+                    LiveStep::Idle => 1,
+                    LiveStep::Quit => 2,
+                });
+                out.u32(edits.len() as u32);
+                for edit in edits {
+                    out.blob(edit);
+                }
+            }
+            Message::Left => out.u8(10),
         }
         out.0
     }
@@ -182,13 +207,31 @@ impl Message {
                 }
             }
             5 => Message::Done { job: input.u64()? },
-            6 => Message::Stop,
+            6 => Message::Stop {
+                next_job: input.u64()?,
+            },
             7 => Message::Fail {
                 text: input.text()?,
             },
             8 => Message::Share {
                 value: input.u64()?,
             },
+            9 => {
+                let next = match input.u8()? {
+                    0 => LiveStep::Render,
+                    1 => LiveStep::Idle,
+                    2 => LiveStep::Quit,
+                    _ => return Err(Malformed),
+                };
+                let count = input.u32()? as usize;
+                // Each edit takes at least its length: refuse a count the bytes cannot hold.
+                if count > input.remaining() / 4 {
+                    return Err(Malformed);
+                }
+                let edits = (0..count).map(|_| input.blob()).collect::<Result<_, _>>()?;
+                Message::Step { edits, next }
+            }
+            10 => Message::Left,
             _ => return Err(Malformed),
         };
         if input.remaining() == 0 {
@@ -223,8 +266,11 @@ impl Writer {
         self.f32(v.z);
     }
     fn text(&mut self, text: &str) {
-        self.u32(text.len() as u32);
-        self.0.extend_from_slice(text.as_bytes());
+        self.blob(text.as_bytes());
+    }
+    fn blob(&mut self, bytes: &[u8]) {
+        self.u32(bytes.len() as u32);
+        self.0.extend_from_slice(bytes);
     }
     fn tile_result(&mut self, result: &TileResult) {
         let t = result.tile;
@@ -295,13 +341,16 @@ impl Reader<'_> {
         Ok(Vec3::new(self.f32()?, self.f32()?, self.f32()?))
     }
     fn text(&mut self) -> Result<String, Malformed> {
+        String::from_utf8(self.blob()?).map_err(|_| Malformed)
+    }
+    fn blob(&mut self) -> Result<Vec<u8>, Malformed> {
         let len = self.u32()? as usize;
         if len > self.remaining() {
             return Err(Malformed);
         }
-        let bytes = &self.bytes[self.at..self.at + len];
+        let bytes = self.bytes[self.at..self.at + len].to_vec();
         self.at += len;
-        String::from_utf8(bytes.to_vec()).map_err(|_| Malformed)
+        Ok(bytes)
     }
     fn tile_result(&mut self) -> Result<TileResult, Malformed> {
         let tile = Tile {
@@ -462,11 +511,24 @@ mod tests {
                 want: 1,
             },
             Message::Done { job: 8 },
-            Message::Stop,
+            Message::Stop { next_job: 5 },
             Message::Fail {
                 text: "rank 2: disk full".into(),
             },
             Message::Share { value: u64::MAX },
+            Message::Step {
+                edits: vec![vec![], vec![1, 2, 3], vec![255; 40]],
+                next: LiveStep::Render,
+            },
+            Message::Step {
+                edits: Vec::new(),
+                next: LiveStep::Idle,
+            },
+            Message::Step {
+                edits: vec![vec![0]],
+                next: LiveStep::Quit,
+            },
+            Message::Left,
         ];
         for message in messages {
             let decoded = Message::decode(&message.encode()).expect("reads back");
@@ -517,5 +579,16 @@ mod tests {
         tiles.extend_from_slice(&0u64.to_le_bytes());
         tiles.extend_from_slice(&u32::MAX.to_le_bytes());
         assert_eq!(Message::decode(&tiles), Err(Malformed));
+        let step = Message::Step {
+            edits: vec![vec![7; 9], vec![]],
+            next: LiveStep::Idle,
+        }
+        .encode();
+        for len in 0..step.len() {
+            assert_eq!(Message::decode(&step[..len]), Err(Malformed), "{len} bytes");
+        }
+        let mut unknown_step = step.clone();
+        unknown_step[1] = 3;
+        assert_eq!(Message::decode(&unknown_step), Err(Malformed));
     }
 }
