@@ -191,11 +191,11 @@ pub enum LiveStep {
     Quit,
 }
 
-/// How a frame shared out ended on rank 0.
-enum LeadEnd {
-    /// Every tile is back.
-    Done(Vec<TileResult>),
-    /// The stop flag ended the run.
+/// How a frame shared out ended on this rank.
+enum FrameEnd<T> {
+    /// Every tile is back (on a worker: every tile it was given).
+    Done(T),
+    /// The stop flag, or rank 0's stop, ended the run.
     Stopped,
     /// The frame was given up for a newer one (the cancel flag).
     Cancelled,
@@ -506,21 +506,21 @@ impl Cluster {
         } else {
             self.serve(pool, tiles, checks, render)
                 .map(|served| match served {
-                    Some(results) => LeadEnd::Done(results),
-                    None => LeadEnd::Stopped,
+                    Some(results) => FrameEnd::Done(results),
+                    None => FrameEnd::Stopped,
                 })
         };
         self.total.add(&self.last_frame);
         match outcome {
-            Ok(LeadEnd::Done(results)) => {
+            Ok(FrameEnd::Done(results)) => {
                 let mut frame = FrameBuffer::new(width, height, checks.frame);
                 for result in &results {
                     frame.write_tile(result);
                 }
                 Some(frame)
             }
-            Ok(LeadEnd::Cancelled) => None,
-            Ok(LeadEnd::Stopped) => {
+            Ok(FrameEnd::Cancelled) => None,
+            Ok(FrameEnd::Stopped) => {
                 self.stop.store(true, Ordering::SeqCst);
                 None
             }
@@ -544,7 +544,7 @@ impl Cluster {
         render: &TileRenderer,
         on_tile: &(dyn Fn(&Tile, Duration) + Sync),
         cancel: Option<&AtomicBool>,
-    ) -> Result<LeadEnd, ClusterError> {
+    ) -> Result<FrameEnd<Vec<TileResult>>, ClusterError> {
         let job = self.next_job;
         self.next_job += 1;
         let next = AtomicUsize::new(0);
@@ -594,15 +594,15 @@ impl Cluster {
             outcome
         });
         Ok(match outcome? {
-            LoopEnd::Done => {
+            FrameEnd::Done(()) => {
                 let results = lead
                     .results
                     .into_iter()
                     .map(|r| r.expect("every tile came back"));
-                LeadEnd::Done(results.collect())
+                FrameEnd::Done(results.collect())
             }
-            LoopEnd::Stopped => LeadEnd::Stopped,
-            LoopEnd::Cancelled => LeadEnd::Cancelled,
+            FrameEnd::Stopped => FrameEnd::Stopped,
+            FrameEnd::Cancelled => FrameEnd::Cancelled,
         })
     }
 
@@ -617,7 +617,7 @@ impl Cluster {
         local_busy: &AtomicUsize,
         on_tile: &(dyn Fn(&Tile, Duration) + Sync),
         cancel: Option<&AtomicBool>,
-    ) -> Result<LoopEnd, ClusterError> {
+    ) -> Result<FrameEnd<()>, ClusterError> {
         let start = Instant::now();
         for state in &mut lead.workers {
             state.last_heard = start;
@@ -646,15 +646,15 @@ impl Cluster {
                 if let Some(since) = waiting_since {
                     self.last_frame.waited += since.elapsed();
                 }
-                return Ok(LoopEnd::Done);
+                return Ok(FrameEnd::Done(()));
             }
             if self.stop.load(Ordering::SeqCst) {
-                return Ok(LoopEnd::Stopped);
+                return Ok(FrameEnd::Stopped);
             }
             let none_told = lead.workers.iter().all(|w| !w.done_sent);
             if none_told && cancel.is_some_and(|c| c.load(Ordering::SeqCst)) {
                 self.end_phase()?;
-                return Ok(LoopEnd::Cancelled);
+                return Ok(FrameEnd::Cancelled);
             }
             if progressed {
                 continue;
@@ -979,13 +979,6 @@ fn unexpected(rank: usize, message: &Message) -> ClusterError {
         rank,
         problem: format!("{name} arrived out of turn"),
     }
-}
-
-/// How rank 0's polling of a frame ended.
-enum LoopEnd {
-    Done,
-    Stopped,
-    Cancelled,
 }
 
 /// Rank 0's view of one worker during a frame.
