@@ -245,9 +245,7 @@ fn a_silent_rank_ends_the_frame_in_bounded_time_naming_it() {
     let silent = transports.pop().unwrap();
     let leader = transports.pop().unwrap();
     let silent_thread = std::thread::spawn(move || {
-        let stop = Arc::new(AtomicBool::new(false));
-        let mut cluster = Cluster::new(Box::new(silent), Duration::from_secs(60), stop);
-        cluster.agree_loaded(Ok(())).unwrap();
+        let _cluster = joined(silent, Duration::from_secs(60));
         // Keep the transport alive, silent, until rank 0 is done.
         std::thread::sleep(Duration::from_secs(3));
     });
@@ -296,6 +294,15 @@ fn live_meadow(threads: usize) -> (World, Entity) {
     )));
     world.insert_resource(SingleThreadedSystems);
     (world, camera)
+}
+
+/// A rank's place in a run over `transport`, its scene reported loaded and the run
+/// agreed on.
+fn joined(transport: impl Transport + 'static, timeout: Duration) -> Cluster {
+    let stop = Arc::new(AtomicBool::new(false));
+    let mut cluster = Cluster::new(Box::new(transport), timeout, stop);
+    cluster.agree_loaded(Ok(())).unwrap();
+    cluster
 }
 
 /// Commands sent with a pause after each (a pause shorter than a frame gives the frame
@@ -396,18 +403,13 @@ fn a_live_render_on_a_cluster_shows_what_one_process_shows_through_moves_edits_a
         .map(|transport| {
             std::thread::spawn(move || {
                 let (world, camera) = live_meadow(1);
-                let stop = Arc::new(AtomicBool::new(false));
-                let mut cluster = Cluster::new(Box::new(transport), timeout, stop);
-                cluster.agree_loaded(Ok(())).unwrap();
-                serve_live(world, camera, cluster).map(|world| world.resource::<Cluster>().total)
+                serve_live(world, camera, joined(transport, timeout))
+                    .map(|world| world.resource::<Cluster>().total)
             })
         })
         .collect();
     let (mut world, camera) = live_meadow(1);
-    let stop = Arc::new(AtomicBool::new(false));
-    let mut cluster = Cluster::new(Box::new(leader), timeout, stop);
-    cluster.agree_loaded(Ok(())).unwrap();
-    world.insert_resource(cluster);
+    world.insert_resource(joined(leader, timeout));
     let live = LiveRender::start(world, camera, 2, || {}).unwrap();
     let (shown, film) = drive_live(live, camera, &bursts, Duration::from_millis(1500));
     for worker in workers {
@@ -437,16 +439,13 @@ fn a_live_worker_whose_rank_0_falls_silent_ends_naming_it() {
     let worker = transports.pop().unwrap();
     let leader = transports.pop().unwrap();
     let silent = std::thread::spawn(move || {
-        let stop = Arc::new(AtomicBool::new(false));
-        let mut cluster = Cluster::new(Box::new(leader), Duration::from_secs(60), stop);
-        cluster.agree_loaded(Ok(())).unwrap();
+        let _cluster = joined(leader, Duration::from_secs(60));
         // Loaded, then no frame and no sign of life.
         std::thread::sleep(Duration::from_secs(2));
     });
     let (world, camera) = live_meadow(1);
-    let stop = Arc::new(AtomicBool::new(false));
-    let mut cluster = Cluster::new(Box::new(worker), Duration::from_millis(400), stop.clone());
-    cluster.agree_loaded(Ok(())).unwrap();
+    let cluster = joined(worker, Duration::from_millis(400));
+    let stop = cluster.stop_flag();
     let start = Instant::now();
     let failure = serve_live(world, camera, cluster).expect_err("it ends failing");
     assert!(
@@ -511,21 +510,15 @@ fn close_mid_walk() -> Vec<Option<Result<(), ClusterError>>> {
         let left = left.clone();
         std::thread::spawn(move || {
             let (world, camera) = larger_live_meadow();
-            let stop = Arc::new(AtomicBool::new(false));
             let late = Late {
                 transport,
                 arrived: Mutex::default(),
             };
-            let mut cluster = Cluster::new(Box::new(late), timeout, stop);
-            cluster.agree_loaded(Ok(())).unwrap();
-            let _ = left.send(serve_live(world, camera, cluster).map(|_| ()));
+            let _ = left.send(serve_live(world, camera, joined(late, timeout)).map(|_| ()));
         });
     }
     let (mut world, camera) = larger_live_meadow();
-    let stop = Arc::new(AtomicBool::new(false));
-    let mut cluster = Cluster::new(Box::new(leader), timeout, stop);
-    cluster.agree_loaded(Ok(())).unwrap();
-    world.insert_resource(cluster);
+    world.insert_resource(joined(leader, timeout));
     let mut live = LiveRender::start(world, camera, 1000, || {}).unwrap();
     for step in 0..5 {
         let pose = Transform::looking_at(
