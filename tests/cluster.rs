@@ -79,13 +79,45 @@ fn cluster_run(
     threads_of: impl Fn(usize) -> usize + Sync,
     timeout: Duration,
 ) -> Vec<RankEnd> {
-    let transports = ChannelTransport::mesh(size);
+    let plain = Leader {
+        frames,
+        frames_follow: false,
+        after_frame: &|_, _| {},
+    };
+    cluster_run_with(size, &seed_of, &threads_of, timeout, plain, usize::MAX)
+}
+
+/// What a rank does after each of its frames: `(rank, world)`.
+type AfterFrame = dyn Fn(usize, &mut World) + Sync;
+
+/// How rank 0 drives a threaded cluster run.
+#[derive(Clone, Copy)]
+struct Leader<'a> {
+    /// Frames rank 0 refines.
+    frames: u32,
+    /// Rank 0's driver says more frames follow its last (workers may start on them).
+    frames_follow: bool,
+    /// Run on every rank after each frame (rank 0's part between frames, a worker's
+    /// change to its world).
+    after_frame: &'a AfterFrame,
+}
+
+/// [`cluster_run`] driven by `leader`, over transports whose sends above `eager_limit`
+/// bytes wait until taken (as MPI's large sends do).
+fn cluster_run_with(
+    size: usize,
+    seed_of: &(dyn Fn(usize) -> u64 + Sync),
+    threads_of: &(dyn Fn(usize) -> usize + Sync),
+    timeout: Duration,
+    leader: Leader,
+    eager_limit: usize,
+) -> Vec<RankEnd> {
+    let transports = ChannelTransport::mesh_with_eager_limit(size, eager_limit);
     std::thread::scope(|scope| {
         let handles: Vec<_> = transports
             .into_iter()
             .map(|transport| {
-                let (seed_of, threads_of) = (&seed_of, &threads_of);
-                scope.spawn(move || run_rank(transport, frames, seed_of, threads_of, timeout))
+                scope.spawn(move || run_rank(transport, seed_of, threads_of, timeout, leader))
             })
             .collect();
         handles.into_iter().map(|h| h.join().unwrap()).collect()
@@ -94,10 +126,10 @@ fn cluster_run(
 
 fn run_rank(
     transport: ChannelTransport,
-    frames: u32,
     seed_of: &(dyn Fn(usize) -> u64 + Sync),
     threads_of: &(dyn Fn(usize) -> usize + Sync),
     timeout: Duration,
+    leader: Leader,
 ) -> RankEnd {
     let rank = transport.rank();
     let mut world = World::new();
@@ -116,11 +148,13 @@ fn run_rank(
         let mut schedule = frame_schedule();
         schedule.set_executor(SingleThreadedExecutor::new());
         let stop = StopAt {
-            frames: Some(if leads { frames } else { u32::MAX }),
-            budget: None,
+            frames: Some(if leads { leader.frames } else { u32::MAX }),
             interrupt: Some(stop_flag),
+            frames_follow: leader.frames_follow,
+            ..StopAt::default()
         };
-        let (why, _) = refine(&mut world, &mut schedule, camera, &stop, |_, _| {
+        let (why, _) = refine(&mut world, &mut schedule, camera, &stop, |world, _| {
+            (leader.after_frame)(rank, world);
             sylva::systems::Flow::Continue
         });
         stopped = Some(why);
@@ -165,6 +199,116 @@ fn rank_zeros_film_is_one_process_film_bit_for_bit_for_any_ranks_and_threads() {
             by_workers > 0,
             size > 1,
             "{size} ranks: {by_workers} tiles elsewhere"
+        );
+    }
+}
+
+#[test]
+fn workers_render_the_next_frame_while_rank_0_is_between_frames_and_the_film_stays_exact() {
+    let reference = alone(3, 2);
+    for (size, threads) in [(2, 1), (3, 2)] {
+        // Rank 0's part between frames takes 300 ms: time enough for a worker to start
+        // on the next frame with what rank 0's thread for it hands out.
+        let pausing = Leader {
+            frames: 3,
+            frames_follow: false,
+            after_frame: &|rank, _| {
+                if rank == 0 {
+                    std::thread::sleep(Duration::from_millis(300));
+                }
+            },
+        };
+        let ends = cluster_run_with(
+            size,
+            &|_| 7,
+            &|_| threads,
+            Duration::from_secs(60),
+            pausing,
+            usize::MAX,
+        );
+        assert_eq!(ends[0].failure, None);
+        assert!(
+            ends[0].film == reference,
+            "{size} ranks × {threads} threads: rank 0's film differs from one process's"
+        );
+        let ahead = ends[0].counters.tiles_ahead;
+        assert!(
+            ahead > 0 && ahead <= ends[0].counters.tiles_elsewhere,
+            "{size} ranks: {ahead} tiles rendered ahead of rank 0"
+        );
+        // No worker starts on a frame after the last: every tile rendered was used.
+        let rendered: u64 = ends.iter().map(|e| e.counters.tiles_here).sum();
+        assert_eq!(rendered, 3 * 30, "{size} ranks");
+    }
+}
+
+#[test]
+fn a_run_that_ends_while_workers_render_ahead_leaves_none_blocked_in_a_send() {
+    // Rank 0 says frames follow its last, then ends the run at once: its workers are
+    // on a frame that will not come, sending tiles that wait until rank 0 takes them.
+    let ending = Leader {
+        frames: 2,
+        frames_follow: true,
+        after_frame: &|_, _| {},
+    };
+    let (done, finished) = std::sync::mpsc::channel();
+    std::thread::spawn(move || {
+        let ends = cluster_run_with(3, &|_| 7, &|_| 1, Duration::from_secs(60), ending, 4096);
+        let _ = done.send(ends);
+    });
+    let ends = finished
+        .recv_timeout(Duration::from_secs(30))
+        .expect("every rank ends");
+    assert_eq!(ends[0].film, alone(2, 1));
+    for end in &ends {
+        assert_eq!(end.failure, None);
+    }
+    // The workers did start on the third frame, which was dropped.
+    let rendered: u64 = ends.iter().map(|e| e.counters.tiles_here).sum();
+    assert!(rendered > 2 * 30, "{rendered} tiles rendered");
+}
+
+#[test]
+fn a_worker_ahead_of_rank_0_on_another_view_is_refused_by_name_when_rank_0_gets_there() {
+    // After its first frame rank 2 turns its camera, rank 0 pauses: rank 2 renders
+    // tiles of its second frame ahead of rank 0, which refuses them on reaching it.
+    let turning = Leader {
+        frames: 3,
+        frames_follow: false,
+        after_frame: &|rank, world| match rank {
+            0 => std::thread::sleep(Duration::from_millis(300)),
+            2 => {
+                let mut cameras = world.query_filtered::<&mut Transform, With<Camera>>();
+                for mut transform in cameras.iter_mut(world) {
+                    transform.translation.x += 0.5;
+                }
+            }
+            _ => {}
+        },
+    };
+    let ends = cluster_run_with(
+        3,
+        &|_| 7,
+        &|_| 1,
+        Duration::from_secs(60),
+        turning,
+        usize::MAX,
+    );
+    let failure = ends[0].failure.clone().expect("rank 0 refuses the run");
+    assert_eq!(
+        failure,
+        ClusterError::Mismatch {
+            rank: 2,
+            what: "camera view or sampling settings"
+        }
+    );
+    // The first frame is in the film; the second, rendered partly ahead, is not.
+    assert_eq!(ends[0].film, alone(1, 1));
+    for end in &ends[1..] {
+        assert!(
+            matches!(&end.failure, Some(ClusterError::Failed { rank: 0, error }) if error.contains("rank 2")),
+            "{:?}",
+            end.failure
         );
     }
 }
@@ -262,8 +406,8 @@ fn a_silent_rank_ends_the_frame_in_bounded_time_naming_it() {
     let start = Instant::now();
     let stop = StopAt {
         frames: Some(4),
-        budget: None,
         interrupt: Some(stop_flag),
+        ..StopAt::default()
     };
     let (why, _) = refine(&mut world, &mut frame_schedule(), camera, &stop, |_, _| {
         sylva::systems::Flow::Continue

@@ -340,7 +340,10 @@ fn animate(args: &AnimateArgs, pattern: &FramePattern, node: &mut Node) -> Resul
             &mut schedule,
             camera,
             index,
-            &stop,
+            &StopAt {
+                frames_follow: index + 1 < images,
+                ..stop.clone()
+            },
             |world, _| {
                 if let Some(profile) = &mut profile {
                     profile.record(world);

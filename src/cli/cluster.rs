@@ -148,8 +148,8 @@ impl Node {
         match world.get_resource::<Cluster>() {
             Some(cluster) if !cluster.leads() => StopAt {
                 frames: Some(u32::MAX),
-                budget: None,
                 interrupt: Some(cluster.stop_flag()),
+                ..StopAt::default()
             },
             _ => leader,
         }
@@ -224,8 +224,9 @@ fn counters_line(ranks: usize, total: &ClusterCounters) -> String {
     let frames = total.frames.max(1) as f64;
     let tiles = (total.tiles_here + total.tiles_elsewhere).max(1) as f64;
     format!(
-        "  cluster: {ranks} ranks, {:.0} % of the tiles rendered by the other ranks, {:.2} MB received and {:.3} MB sent per frame, rank 0 waited {:.1} ms per frame for the last tiles",
+        "  cluster: {ranks} ranks, {:.0} % of the tiles rendered by the other ranks ({:.0} % of those ahead of rank 0's frame), {:.2} MB received and {:.3} MB sent per frame, rank 0 waited {:.1} ms per frame for the last tiles",
         100.0 * total.tiles_elsewhere as f64 / tiles,
+        100.0 * total.tiles_ahead as f64 / total.tiles_elsewhere.max(1) as f64,
         total.bytes_received as f64 / frames / 1e6,
         total.bytes_sent as f64 / frames / 1e6,
         total.waited.as_secs_f64() * 1e3 / frames,

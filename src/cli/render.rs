@@ -362,6 +362,7 @@ fn render(args: &RenderArgs, node: &mut Node) -> Result<()> {
             },
             budget: args.time,
             interrupt: Some(interrupted.clone()),
+            frames_follow: false,
         },
         &world,
     );

@@ -85,6 +85,7 @@ impl Sequence {
             frames: Some(self.frames_per_image.max(1)),
             budget: None,
             interrupt: stop.interrupt.clone(),
+            frames_follow: stop.frames_follow,
         };
         let (stopped, _) = refine(world, schedule, camera, &stop, |world, progress| {
             // Time moves once per image, not once per accumulated frame.

@@ -188,7 +188,7 @@ pub fn measure(
     let stop = StopAt {
         frames: Some(max_frames),
         budget: Some(budget),
-        interrupt: None,
+        ..StopAt::default()
     };
     refine(world, schedule, camera, &stop, |world, progress| {
         let error = image_error(reference, &shown_pixels(world, camera)).unwrap_or_default();

@@ -10,6 +10,8 @@ use std::sync::atomic::{AtomicBool, Ordering};
 use std::time::{Duration, Instant};
 use sylva_engine::film::Film;
 
+use crate::cluster::Cluster;
+
 /// When a progressive run stops; the first condition met ends it. With neither a frame
 /// count nor a budget it renders one frame.
 #[derive(Clone, Debug, Default)]
@@ -21,6 +23,9 @@ pub struct StopAt {
     pub budget: Option<Duration>,
     /// Set from elsewhere (Ctrl-C, a window's input) to stop after the frame in progress.
     pub interrupt: Option<Arc<AtomicBool>>,
+    /// Frames follow this run's last one (the next image of an animation): a cluster's
+    /// workers may start on them before rank 0 has finished this run.
+    pub frames_follow: bool,
 }
 
 /// Why a progressive run stopped.
@@ -86,6 +91,12 @@ pub fn refine(
             .map_or(0, |s| s.cancelled)
     };
     loop {
+        if let Some(mut cluster) = world.get_resource_mut::<Cluster>() {
+            // After a run's last frame only the caller knows what comes: workers start
+            // on the next frame ahead of rank 0 only when it says one follows.
+            let last = target.is_some_and(|target| progress.frames.saturating_add(1) >= target);
+            cluster.frames_follow(!last || stop.frames_follow);
+        }
         let start = Instant::now();
         let cancelled_before = cancelled_frames(world);
         schedule.run(world);

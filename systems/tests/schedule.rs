@@ -521,7 +521,7 @@ fn the_progressive_driver_stops_on_interrupt_budget_and_caller() {
     let stop = StopAt {
         frames: Some(1000),
         budget: Some(std::time::Duration::ZERO),
-        interrupt: None,
+        ..StopAt::default()
     };
     let (stopped, progress) = refine(&mut w.world, &mut w.schedule, w.camera, &stop, |_, _| {
         Flow::Continue

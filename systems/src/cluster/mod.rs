@@ -163,6 +163,8 @@ pub struct ClusterCounters {
     pub tiles_here: u64,
     /// Tiles other ranks rendered (counted on rank 0).
     pub tiles_elsewhere: u64,
+    /// Of those, tiles rendered before rank 0 started their frame (pipelined).
+    pub tiles_ahead: u64,
     /// Time this rank's threads had no tile to render while the frame was not done: on
     /// rank 0 from its last local tile to the last tile back, on a worker while it had
     /// none in hand.
@@ -176,6 +178,7 @@ impl ClusterCounters {
         self.bytes_received += other.bytes_received;
         self.tiles_here += other.tiles_here;
         self.tiles_elsewhere += other.tiles_elsewhere;
+        self.tiles_ahead += other.tiles_ahead;
         self.waited += other.waited;
     }
 }
@@ -206,15 +209,31 @@ pub type TileRenderer<'a> = dyn Fn(Tile) -> TileResult + Sync + 'a;
 
 /// This process's place in a cluster run: insert it as a resource and
 /// [`render_tiles`](crate::render_tiles) shares every frame out over its transport.
+///
+/// Frames are pipelined: a worker done with its share of a frame starts on the next
+/// one at once, handed runs of it by rank 0 while rank 0 still finishes the current
+/// frame and then does its part between frames (a thread of its own keeps answering
+/// the workers meanwhile). Rank 0 keeps those tiles until its own schedule reaches that
+/// frame and has checked that the workers rendered what it would.
 #[derive(Resource)]
 pub struct Cluster {
-    transport: Box<dyn Transport>,
+    transport: Arc<dyn Transport>,
+    rank: usize,
+    size: usize,
     timeout: Duration,
     next_job: u64,
     /// Phases of the run rank 0 has ended with [`finish`](Self::finish).
     phase: u32,
-    /// Messages rank 0 received for a job it has not started yet.
+    /// Messages rank 0 received for a job after the next one.
     deferred: Vec<(usize, Message)>,
+    /// The job rank 0 starts next, opened ahead of it by a worker ready for it.
+    ahead: Option<Job>,
+    /// Rank 0's thread serving the workers between frames, while it has the transport.
+    away: Option<Away>,
+    /// Counters of the time between frames, for the next frame's.
+    carried: ClusterCounters,
+    /// Rank 0's driver expects frames after the ones it is rendering.
+    frames_follow: bool,
     stop: Arc<AtomicBool>,
     failure: Option<ClusterError>,
     /// The latest frame's counters.
@@ -223,17 +242,31 @@ pub struct Cluster {
     pub total: ClusterCounters,
 }
 
+impl Drop for Cluster {
+    fn drop(&mut self) {
+        // The transport must not be in use when MPI finishes after this.
+        let _ = self.reclaim();
+    }
+}
+
 impl Cluster {
     /// This process's place in the run over `transport`; no wait lasts longer than
     /// `timeout`. `stop` is set when the run must end: on a worker when rank 0 says so,
     /// on any rank when the run fails (pass it as the progressive driver's interrupt).
     pub fn new(transport: Box<dyn Transport>, timeout: Duration, stop: Arc<AtomicBool>) -> Self {
+        let (rank, size) = (transport.rank(), transport.size());
         Self {
-            transport,
+            transport: Arc::from(transport),
+            rank,
+            size,
             timeout,
             next_job: 0,
             phase: 0,
             deferred: Vec::new(),
+            ahead: None,
+            away: None,
+            carried: ClusterCounters::default(),
+            frames_follow: true,
             stop,
             failure: None,
             last_frame: ClusterCounters::default(),
@@ -243,12 +276,12 @@ impl Cluster {
 
     /// This process's rank.
     pub fn rank(&self) -> usize {
-        self.transport.rank()
+        self.rank
     }
 
     /// Ranks in the run.
     pub fn size(&self) -> usize {
-        self.transport.size()
+        self.size
     }
 
     /// True on rank 0, which leads the run and writes its results.
@@ -335,21 +368,79 @@ impl Cluster {
     /// Rank 0 ends the run, or a phase of it: the workers' drivers stop (their stop
     /// flag is set) and leave the frame they stood ready for. Does nothing elsewhere.
     pub fn finish(&mut self) -> Result<(), ClusterError> {
-        if self.leads() {
-            self.end_phase()?;
+        if !self.leads() {
+            return Ok(());
+        }
+        let phase = self.phase;
+        let holding = self.end_phase()?;
+        // A worker holding runs of a frame it started ahead may be sending their tiles:
+        // take what comes until it says it has stopped, so that none is left blocked in
+        // a send to a rank 0 that has moved on or gone. (Other workers are waiting for
+        // a frame, or have left on their own count of frames.) After a failure the
+        // workers have been told to leave instead.
+        if self.failure.is_none() {
+            self.await_halted(phase, holding)?;
+        }
+        let carried = std::mem::take(&mut self.carried);
+        self.total.add(&carried);
+        Ok(())
+    }
+
+    /// Rank 0 takes messages until each of the workers `holding` has answered the stop
+    /// of `phase`.
+    fn await_halted(&mut self, phase: u32, holding: Vec<usize>) -> Result<(), ClusterError> {
+        let mut halted = vec![true; self.size];
+        for rank in holding {
+            halted[rank] = false;
+        }
+        let mut last_heard = vec![Instant::now(); self.size];
+        while let Some(waiting) = halted.iter().position(|h| !h) {
+            match self.receive()? {
+                Some((rank, Message::Halted { phase: p })) if p == phase => halted[rank] = true,
+                Some((rank, Message::Fail { text })) => {
+                    return Err(self.fail_run(ClusterError::Failed { rank, error: text }));
+                }
+                // A worker already on into the next phase.
+                Some((rank, message @ Message::Ready { phase: p, .. })) if p == self.phase => {
+                    last_heard[rank] = Instant::now();
+                    self.deferred.push((rank, message));
+                }
+                // Tiles of the dropped job, ready messages of the ended phase, answers
+                // to earlier stops.
+                Some((rank, _)) => last_heard[rank] = Instant::now(),
+                None => {
+                    if let Err(error) =
+                        self.check_silence(waiting, last_heard[waiting].elapsed(), 0)
+                    {
+                        return Err(self.fail_run(error));
+                    }
+                    std::thread::sleep(POLL);
+                }
+            }
         }
         Ok(())
     }
 
     /// Rank 0 tells every worker to leave the job it is on or stands ready for.
-    fn end_phase(&mut self) -> Result<(), ClusterError> {
+    /// Returns the workers that held runs of a job opened ahead, now dropped.
+    fn end_phase(&mut self) -> Result<Vec<usize>, ClusterError> {
+        self.reclaim()?;
+        let mut holding = Vec::new();
+        // A job opened ahead ends with its number unused: its tiles still on the way
+        // are then recognisably stale.
+        if let Some(ahead) = self.ahead.take() {
+            self.next_job += 1;
+            holding = (1..self.size)
+                .filter(|&rank| ahead.workers[rank].outstanding > 0)
+                .collect();
+        }
         let next_job = self.next_job;
         for rank in 1..self.size() {
             self.send(rank, &Message::Stop { next_job })?;
         }
         self.phase += 1;
         self.deferred.clear();
-        Ok(())
+        Ok(holding)
     }
 
     /// Rank 0 of a live render sends every worker the edits it applied since the last
@@ -404,8 +495,9 @@ impl Cluster {
                 }
                 // The frame a stop gave up had ended here already: nothing to leave.
                 Ok(Some((0, Message::Stop { next_job }))) => {
-                    self.next_job = next_job;
-                    self.phase += 1;
+                    if let Err(error) = self.halt(next_job) {
+                        break Err(error);
+                    }
                 }
                 Ok(Some((rank, Message::Fail { text }))) => {
                     break Err(ClusterError::Failed { rank, error: text });
@@ -425,6 +517,23 @@ impl Cluster {
             self.stop.store(true, Ordering::SeqCst);
         }
         step
+    }
+
+    /// Rank 0's driver says whether frames follow the ones it is about to render: only
+    /// then does a worker done with its share of a frame start on the next one ahead of
+    /// rank 0. A hint: a wrong one costs time (workers wait, or render a frame that is
+    /// then dropped), never a pixel. Workers ignore it.
+    pub fn frames_follow(&mut self, follow: bool) {
+        self.frames_follow = follow;
+    }
+
+    /// A worker leaves the job rank 0's stop ended: says so (nothing of it follows),
+    /// and goes on to the next phase, whose first job is `next_job`.
+    fn halt(&mut self, next_job: u64) -> Result<(), ClusterError> {
+        self.send(0, &Message::Halted { phase: self.phase })?;
+        self.next_job = next_job;
+        self.phase += 1;
+        Ok(())
     }
 
     /// A worker goes on into rank 0's next phase after [`finish`](Self::finish) ended
@@ -494,12 +603,12 @@ impl Cluster {
         on_tile: &(dyn Fn(&Tile, Duration) + Sync),
         cancel: Option<&AtomicBool>,
     ) -> Option<FrameBuffer> {
-        if self.failure.is_some() {
+        if self.reclaim().is_err() || self.failure.is_some() {
             return None;
         }
         self.last_frame = ClusterCounters {
             frames: 1,
-            ..ClusterCounters::default()
+            ..std::mem::take(&mut self.carried)
         };
         let outcome = if self.leads() {
             self.lead(pool, tiles, checks, render, on_tile, cancel)
@@ -513,6 +622,9 @@ impl Cluster {
         self.total.add(&self.last_frame);
         match outcome {
             Ok(FrameEnd::Done(results)) => {
+                if self.leads() {
+                    self.dispatch_until_next_frame();
+                }
                 let mut frame = FrameBuffer::new(width, height, checks.frame);
                 for result in &results {
                     frame.write_tile(result);
@@ -525,9 +637,7 @@ impl Cluster {
                 None
             }
             Err(error) => {
-                self.abandon(&error.to_string());
-                self.failure = Some(error);
-                self.stop.store(true, Ordering::SeqCst);
+                self.fail_run(error);
                 None
             }
         }
@@ -545,28 +655,19 @@ impl Cluster {
         on_tile: &(dyn Fn(&Tile, Duration) + Sync),
         cancel: Option<&AtomicBool>,
     ) -> Result<FrameEnd<Vec<TileResult>>, ClusterError> {
-        let job = self.next_job;
+        let number = self.next_job;
         self.next_job += 1;
-        let next = AtomicUsize::new(0);
+        let job = self.start_job(number, tiles, checks, on_tile)?;
+        let next = job.next.clone();
+        let runs = job.runs;
         let give_up = AtomicBool::new(false);
         let local_busy = AtomicUsize::new(pool.current_num_threads());
         let (sender, local) = mpsc::channel::<(usize, TileResult)>();
-        let runs = tiles.len().div_ceil(RUN_TILES);
-        let mut lead = Lead {
-            job,
-            checks,
-            tiles,
-            next: &next,
-            runs,
-            owners: vec![None; runs],
-            results: (0..tiles.len()).map(|_| None).collect(),
-            received: 0,
-            workers: vec![WorkerState::default(); self.size()],
-        };
+        let mut lead = Lead { job, checks, tiles };
         let outcome = pool.in_place_scope(|scope| {
             for _ in 0..pool.current_num_threads() {
                 let sender = sender.clone();
-                let (next, give_up, local_busy) = (&next, &give_up, &local_busy);
+                let (next, give_up, local_busy) = (&*next, &give_up, &local_busy);
                 scope.spawn(move |_| {
                     'runs: loop {
                         let run = next.fetch_add(1, Ordering::Relaxed);
@@ -596,6 +697,7 @@ impl Cluster {
         Ok(match outcome? {
             FrameEnd::Done(()) => {
                 let results = lead
+                    .job
                     .results
                     .into_iter()
                     .map(|r| r.expect("every tile came back"));
@@ -606,10 +708,65 @@ impl Cluster {
         })
     }
 
+    /// Rank 0's job `number`: the one workers opened ahead of it, once their checks
+    /// equal rank 0's and their tiles are the frame's, or a new one.
+    fn start_job(
+        &mut self,
+        number: u64,
+        tiles: &[Tile],
+        checks: FrameChecks,
+        on_tile: &(dyn Fn(&Tile, Duration) + Sync),
+    ) -> Result<Job, ClusterError> {
+        let Some(job) = self.ahead.take().filter(|job| job.number == number) else {
+            return Ok(Job::new(number, tiles.len(), self.size));
+        };
+        for (rank, worker) in job.workers.iter().enumerate() {
+            if let Some(theirs) = worker.checks {
+                compare_checks(rank, &checks, &theirs)?;
+            }
+        }
+        if job.tile_count != tiles.len() {
+            // Equal view checks mean equal grids; a count that differs is no renderer's.
+            let rank = job.workers.iter().position(|w| w.checks.is_some());
+            return Err(ClusterError::Protocol {
+                rank: rank.unwrap_or(0),
+                problem: format!(
+                    "it was ready for {} tiles of a frame of {}",
+                    job.tile_count,
+                    tiles.len()
+                ),
+            });
+        }
+        for &(index, rank, time) in &job.early {
+            if job.results[index].as_ref().map(|r| r.tile) != Some(tiles[index]) {
+                return Err(ClusterError::Protocol {
+                    rank,
+                    problem: format!("tile {index} came back as another tile"),
+                });
+            }
+            on_tile(&tiles[index], time);
+        }
+        self.last_frame.tiles_ahead += job.early.len() as u64;
+        self.last_frame.tiles_elsewhere += job.early.len() as u64;
+        let mut job = job;
+        job.early.clear();
+        // Workers whose frame differed from the first one's waited for this check.
+        for rank in 1..self.size {
+            let waiting = std::mem::take(&mut job.workers[rank].waiting);
+            if waiting > 0
+                && let Some(answer) = job.assign(rank, waiting)
+            {
+                self.send(rank, &answer)?;
+            }
+        }
+        Ok(job)
+    }
+
     /// Polls local results and messages until every tile is back and every worker has
     /// been told the frame is done, or the stop flag or `cancel` ends it first. A
     /// frame is given up only before any worker has been told it is done, so that
-    /// every rank gives it up (a worker told so has already kept it).
+    /// every rank gives it up (a worker told so has already kept it, and may be on the
+    /// next job).
     fn lead_loop(
         &mut self,
         lead: &mut Lead,
@@ -619,7 +776,7 @@ impl Cluster {
         cancel: Option<&AtomicBool>,
     ) -> Result<FrameEnd<()>, ClusterError> {
         let start = Instant::now();
-        for state in &mut lead.workers {
+        for state in &mut lead.job.workers {
             state.last_heard = start;
         }
         let mut pending = std::mem::take(&mut self.deferred);
@@ -628,7 +785,8 @@ impl Cluster {
         loop {
             let mut progressed = false;
             while let Ok((index, result)) = local.try_recv() {
-                lead.store_local(index, result);
+                lead.job.results[index] = Some(result);
+                lead.job.received += 1;
                 self.last_frame.tiles_here += 1;
                 progressed = true;
             }
@@ -641,8 +799,9 @@ impl Cluster {
                 progressed = true;
                 self.lead_message(lead, rank, message, on_tile)?;
             }
-            let all_told = lead.workers.iter().skip(1).all(|w| w.done_sent);
-            if lead.received == lead.tiles.len() && all_told {
+            let job = &lead.job;
+            let all_told = job.workers.iter().skip(1).all(|w| w.done_sent);
+            if job.received == job.tile_count && all_told {
                 if let Some(since) = waiting_since {
                     self.last_frame.waited += since.elapsed();
                 }
@@ -651,7 +810,7 @@ impl Cluster {
             if self.stop.load(Ordering::SeqCst) {
                 return Ok(FrameEnd::Stopped);
             }
-            let none_told = lead.workers.iter().all(|w| !w.done_sent);
+            let none_told = job.workers.iter().all(|w| !w.done_sent);
             if none_told && cancel.is_some_and(|c| c.load(Ordering::SeqCst)) {
                 self.end_phase()?;
                 return Ok(FrameEnd::Cancelled);
@@ -669,16 +828,20 @@ impl Cluster {
             }
             waiting_since.get_or_insert_with(Instant::now);
             let now = Instant::now();
-            for (rank, state) in lead.workers.iter().enumerate().skip(1) {
+            for (rank, state) in lead.job.workers.iter().enumerate().skip(1) {
                 if !state.done_sent {
                     self.check_silence(rank, now - state.last_heard, state.outstanding)?;
                 }
+            }
+            if let Some(ahead) = &self.ahead {
+                check_ahead_silence(ahead, self.timeout, now)?;
             }
             std::thread::sleep(POLL);
         }
     }
 
-    /// Rank 0 handles one worker's message of the frame in progress.
+    /// Rank 0 handles one worker's message during a frame: of the frame, of the next
+    /// one (opened ahead), or of a later one (kept for then).
     fn lead_message(
         &mut self,
         lead: &mut Lead,
@@ -686,105 +849,133 @@ impl Cluster {
         message: Message,
         on_tile: &(dyn Fn(&Tile, Duration) + Sync),
     ) -> Result<(), ClusterError> {
-        lead.workers[rank].last_heard = Instant::now();
+        lead.job.workers[rank].last_heard = Instant::now();
+        let current = lead.job.number;
         match message {
             // A worker's ready message of a phase rank 0 has ended: it was waiting for
             // a frame that never came, and asks again in the new phase.
             Message::Ready { phase, .. } if phase < self.phase => {}
-            Message::Ready { job, .. } if job > lead.job => {
+            Message::Ready { job, .. } if job == current + 1 && self.frames_follow => {
+                if let Some(answer) = serve_ahead(&mut self.ahead, job, self.size, rank, message)? {
+                    self.send(rank, &answer)?;
+                }
+            }
+            Message::Result { job, .. } if job == current + 1 => {
+                if let Some(answer) = serve_ahead(&mut self.ahead, job, self.size, rank, message)? {
+                    self.send(rank, &answer)?;
+                }
+            }
+            Message::Ready { job, .. } if job > current => {
                 self.deferred.push((rank, message));
             }
             Message::Ready {
                 job, checks, want, ..
-            } if job == lead.job => {
-                for (what, ours, theirs) in [
-                    (
-                        "progressive frame",
-                        u64::from(lead.checks.frame),
-                        u64::from(checks.frame),
-                    ),
-                    (
-                        "scene (geometry, plants, shaders or lights)",
-                        lead.checks.scene,
-                        checks.scene,
-                    ),
-                    (
-                        "camera view or sampling settings",
-                        lead.checks.view,
-                        checks.view,
-                    ),
-                ] {
-                    if ours != theirs {
-                        return Err(ClusterError::Mismatch { rank, what });
-                    }
-                }
+            } if job == current => {
+                compare_checks(rank, &lead.checks, &checks)?;
                 self.assign(lead, rank, want)?;
             }
             // Tiles of a frame given up: sent before the worker heard so.
-            Message::Result { job, .. } if job < lead.job => {}
+            Message::Result { job, .. } if job < current => {}
             Message::Result {
                 job,
                 first,
                 tiles,
                 want,
-            } if job == lead.job => {
-                let first = first as usize;
-                let run = first / RUN_TILES;
-                let expected = run_tiles(run, lead.tiles.len());
-                if !first.is_multiple_of(RUN_TILES)
-                    || run >= lead.runs
-                    || lead.owners[run] != Some(rank)
-                    || tiles.len() != expected.len()
-                {
-                    return Err(ClusterError::Protocol {
-                        rank,
-                        problem: format!("tiles from {first} on were not its to return"),
-                    });
-                }
-                lead.owners[run] = None;
-                for (index, (nanos, result)) in expected.zip(tiles) {
-                    if result.tile != lead.tiles[index] {
+            } if job == current => {
+                let taken = lead.job.take_run(rank, first, tiles)?;
+                for (index, time) in taken {
+                    let result = lead.job.results[index].as_ref();
+                    if result.map(|r| r.tile) != Some(lead.tiles[index]) {
                         return Err(ClusterError::Protocol {
                             rank,
                             problem: format!("tile {index} came back as another tile"),
                         });
                     }
-                    on_tile(&lead.tiles[index], Duration::from_nanos(nanos));
-                    lead.results[index] = Some(result);
-                    lead.received += 1;
+                    on_tile(&lead.tiles[index], time);
                     self.last_frame.tiles_elsewhere += 1;
                 }
-                lead.workers[rank].outstanding -= 1;
                 self.assign(lead, rank, want)?;
             }
+            // A worker's answer to a stop that gave a frame up.
+            Message::Halted { .. } => {}
             Message::Fail { text } => return Err(ClusterError::Failed { rank, error: text }),
             other => return Err(unexpected(rank, &other)),
         }
         Ok(())
     }
 
-    /// Gives `rank` up to `want` more runs of tiles; tells it the frame is done once
-    /// the counter has run out and it has returned all it was given.
+    /// Gives `rank` up to `want` more runs of the frame, or tells it the frame is done.
     fn assign(&mut self, lead: &mut Lead, rank: usize, want: u32) -> Result<(), ClusterError> {
-        let mut given = Vec::new();
-        while given.len() < want as usize {
-            let run = lead.next.fetch_add(1, Ordering::Relaxed);
-            if run >= lead.runs {
-                break;
+        match lead.job.assign(rank, want) {
+            Some(answer) => self.send(rank, &answer),
+            None => Ok(()),
+        }
+    }
+
+    /// Rank 0, its frame done, hands the transport to a thread that keeps serving the
+    /// workers until rank 0 next needs it ([`reclaim`](Self::reclaim)): a worker ready
+    /// for the next frame is given runs of it at once.
+    fn dispatch_until_next_frame(&mut self) {
+        if self.size < 2
+            || !self.frames_follow
+            || self.away.is_some()
+            || self.stop.load(Ordering::SeqCst)
+        {
+            return;
+        }
+        let desk = Desk {
+            transport: self.transport.clone(),
+            size: self.size,
+            timeout: self.timeout,
+            phase: self.phase,
+            number: self.next_job,
+            deferred: std::mem::take(&mut self.deferred),
+            ahead: self.ahead.take(),
+            counters: ClusterCounters::default(),
+        };
+        let halt = Arc::new(AtomicBool::new(false));
+        let halted = halt.clone();
+        let spawned = std::thread::Builder::new()
+            .name("sylva-cluster-desk".into())
+            .spawn(move || desk.serve(&halted));
+        // Without a thread to spare the workers wait for rank 0's next frame, as
+        // without pipelining (the desk went down with the failed spawn).
+        if let Ok(handle) = spawned {
+            self.away = Some(Away { halt, handle });
+        }
+    }
+
+    /// Takes the transport back from the thread serving the workers between frames,
+    /// with the next job it opened ahead and what else it received. Its failure ends
+    /// the run: the other ranks are told, and it is returned.
+    fn reclaim(&mut self) -> Result<(), ClusterError> {
+        let Some(away) = self.away.take() else {
+            return Ok(());
+        };
+        away.halt.store(true, Ordering::SeqCst);
+        away.handle.thread().unpark();
+        let (desk, served) = match away.handle.join() {
+            Ok(returned) => returned,
+            Err(_) => {
+                let error = ClusterError::Failed {
+                    rank: self.rank,
+                    error: "rank 0's thread serving the workers between frames panicked".into(),
+                };
+                return Err(self.fail_run(error));
             }
-            lead.owners[run] = Some(rank);
-            let tiles = run_tiles(run, lead.tiles.len());
-            given.push((tiles.start as u32, tiles.len() as u32));
-        }
-        let job = lead.job;
-        if !given.is_empty() {
-            lead.workers[rank].outstanding += given.len();
-            self.send(rank, &Message::Tiles { job, runs: given })?;
-        } else if lead.workers[rank].outstanding == 0 && !lead.workers[rank].done_sent {
-            lead.workers[rank].done_sent = true;
-            self.send(rank, &Message::Done { job })?;
-        }
-        Ok(())
+        };
+        self.deferred = desk.deferred;
+        self.ahead = desk.ahead;
+        self.carried.add(&desk.counters);
+        served.map_err(|error| self.fail_run(error))
+    }
+
+    /// Ends the run on `error`: the other ranks are told, the stop flag set.
+    fn fail_run(&mut self, error: ClusterError) -> ClusterError {
+        self.abandon(&error.to_string());
+        self.failure = Some(error.clone());
+        self.stop.store(true, Ordering::SeqCst);
+        error
     }
 
     /// A worker's side of a frame: say it is ready, render what rank 0 hands out,
@@ -806,6 +997,7 @@ impl Cluster {
                 phase: self.phase,
                 job,
                 checks,
+                tiles: tiles.len() as u32,
                 want: threads as u32 + RESERVE_RUNS,
             },
         )?;
@@ -863,9 +1055,8 @@ impl Cluster {
                         }
                         Message::Stop { next_job } if rank == 0 => {
                             // The job this worker is on, or stood ready for, ends here.
-                            self.next_job = next_job;
-                            self.phase += 1;
                             give_up.store(true, Ordering::Relaxed);
+                            self.halt(next_job)?;
                             return Ok(None);
                         }
                         Message::Fail { text } => {
@@ -939,26 +1130,214 @@ impl Cluster {
     }
 
     fn send(&mut self, to: usize, message: &Message) -> Result<(), ClusterError> {
-        let bytes = message.encode();
-        self.last_frame.bytes_sent += bytes.len() as u64;
-        self.transport
-            .send(to, &bytes)
-            .map_err(|reason| ClusterError::Send { rank: to, reason })
+        self.reclaim()?;
+        send_counted(&*self.transport, &mut self.last_frame, to, message)
     }
 
     fn receive(&mut self) -> Result<Option<(usize, Message)>, ClusterError> {
-        let Some((rank, bytes)) = self.transport.try_receive() else {
-            return Ok(None);
-        };
-        self.last_frame.bytes_received += bytes.len() as u64;
-        match Message::decode(&bytes) {
-            Ok(message) => Ok(Some((rank, message))),
-            Err(wire::Malformed) => Err(ClusterError::Protocol {
-                rank,
-                problem: format!("a message of {} bytes could not be read", bytes.len()),
-            }),
+        self.reclaim()?;
+        receive_counted(&*self.transport, &mut self.last_frame)
+    }
+}
+
+/// Sends `message` to rank `to`, counting its bytes.
+fn send_counted(
+    transport: &dyn Transport,
+    counters: &mut ClusterCounters,
+    to: usize,
+    message: &Message,
+) -> Result<(), ClusterError> {
+    let bytes = message.encode();
+    counters.bytes_sent += bytes.len() as u64;
+    transport
+        .send(to, &bytes)
+        .map_err(|reason| ClusterError::Send { rank: to, reason })
+}
+
+/// A message that has arrived and its sender, its bytes counted.
+fn receive_counted(
+    transport: &dyn Transport,
+    counters: &mut ClusterCounters,
+) -> Result<Option<(usize, Message)>, ClusterError> {
+    let Some((rank, bytes)) = transport.try_receive() else {
+        return Ok(None);
+    };
+    counters.bytes_received += bytes.len() as u64;
+    match Message::decode(&bytes) {
+        Ok(message) => Ok(Some((rank, message))),
+        Err(wire::Malformed) => Err(ClusterError::Protocol {
+            rank,
+            problem: format!("a message of {} bytes could not be read", bytes.len()),
+        }),
+    }
+}
+
+/// A worker's checks against rank 0's for the same job: every rank renders the same
+/// frame of the same scene through the same camera, or the run ends naming the rank.
+fn compare_checks(
+    rank: usize,
+    ours: &FrameChecks,
+    theirs: &FrameChecks,
+) -> Result<(), ClusterError> {
+    // Causes first: a changed scene or view also restarts the frame sequence.
+    for (what, ours, theirs) in [
+        (
+            "scene (geometry, plants, shaders or lights)",
+            ours.scene,
+            theirs.scene,
+        ),
+        ("camera view or sampling settings", ours.view, theirs.view),
+        (
+            "progressive frame",
+            u64::from(ours.frame),
+            u64::from(theirs.frame),
+        ),
+    ] {
+        if ours != theirs {
+            return Err(ClusterError::Mismatch { rank, what });
         }
     }
+    Ok(())
+}
+
+/// The most tiles a worker's frame may have (a 32k × 32k image in 16-pixel tiles):
+/// rank 0 sizes the next job from a worker's word before it can check it.
+const MAX_TILES: u32 = 1 << 22;
+
+/// A worker's message for job `number`, the one after rank 0's current frame: a worker
+/// ready for it opens it ahead of rank 0 and is handed runs at once; the tiles it
+/// returns are kept until rank 0 starts the job and checks them. Returns the answer
+/// to send the worker.
+fn serve_ahead(
+    ahead: &mut Option<Job>,
+    number: u64,
+    size: usize,
+    rank: usize,
+    message: Message,
+) -> Result<Option<Message>, ClusterError> {
+    match message {
+        Message::Ready {
+            checks,
+            tiles,
+            want,
+            ..
+        } => {
+            if tiles > MAX_TILES {
+                return Err(ClusterError::Protocol {
+                    rank,
+                    problem: format!("it was ready for a frame of {tiles} tiles"),
+                });
+            }
+            let job = ahead.get_or_insert_with(|| Job::new(number, tiles as usize, size));
+            let worker = &mut job.workers[rank];
+            worker.last_heard = Instant::now();
+            worker.checks = Some(checks);
+            if tiles as usize != job.tile_count {
+                // Rank 0 tells which rank's frame differs from its own when it starts
+                // the job; this one waits for that.
+                worker.waiting = want;
+                return Ok(None);
+            }
+            Ok(job.assign(rank, want))
+        }
+        Message::Result {
+            first, tiles, want, ..
+        } => {
+            let Some(job) = ahead.as_mut() else {
+                return Err(ClusterError::Protocol {
+                    rank,
+                    problem: format!("it returned tiles of job {number} before it had any"),
+                });
+            };
+            job.workers[rank].last_heard = Instant::now();
+            for (index, time) in job.take_run(rank, first, tiles)? {
+                job.early.push((index, rank, time));
+            }
+            Ok(job.assign(rank, want))
+        }
+        other => Err(unexpected(rank, &other)),
+    }
+}
+
+/// Gives up on a worker holding runs of the job opened ahead once it has been silent
+/// longer than `timeout`.
+fn check_ahead_silence(ahead: &Job, timeout: Duration, now: Instant) -> Result<(), ClusterError> {
+    for (rank, worker) in ahead.workers.iter().enumerate().skip(1) {
+        let waited = now - worker.last_heard;
+        if worker.outstanding > 0 && waited > timeout {
+            return Err(ClusterError::Silent {
+                rank,
+                waited,
+                outstanding: worker.outstanding,
+            });
+        }
+    }
+    Ok(())
+}
+
+/// What rank 0's thread serving the workers between frames holds: the transport, the
+/// next job (opened ahead by the first worker ready for it) and what came for later.
+struct Desk {
+    transport: Arc<dyn Transport>,
+    size: usize,
+    timeout: Duration,
+    phase: u32,
+    /// The job rank 0 starts next.
+    number: u64,
+    deferred: Vec<(usize, Message)>,
+    ahead: Option<Job>,
+    counters: ClusterCounters,
+}
+
+impl Desk {
+    /// Serves until `halt` is set (the thread is unparked then); returns itself for
+    /// rank 0 to take back, and the failure that ended it early, if one did.
+    fn serve(mut self, halt: &AtomicBool) -> (Desk, Result<(), ClusterError>) {
+        let served = self.serve_until(halt);
+        (self, served)
+    }
+
+    fn serve_until(&mut self, halt: &AtomicBool) -> Result<(), ClusterError> {
+        while !halt.load(Ordering::SeqCst) {
+            while let Some((rank, message)) = receive_counted(&*self.transport, &mut self.counters)?
+            {
+                match message {
+                    Message::Ready { phase, .. } if phase < self.phase => {}
+                    Message::Ready { job, .. } | Message::Result { job, .. }
+                        if job == self.number =>
+                    {
+                        let answer = serve_ahead(&mut self.ahead, job, self.size, rank, message)?;
+                        if let Some(answer) = answer {
+                            send_counted(&*self.transport, &mut self.counters, rank, &answer)?;
+                        }
+                    }
+                    Message::Ready { job, .. } if job > self.number => {
+                        self.deferred.push((rank, message));
+                    }
+                    // Tiles of a frame given up, answers to the stop that gave it up.
+                    Message::Result { job, .. } if job < self.number => {}
+                    Message::Halted { .. } => {}
+                    Message::Fail { text } => {
+                        return Err(ClusterError::Failed { rank, error: text });
+                    }
+                    other => return Err(unexpected(rank, &other)),
+                }
+            }
+            if let Some(ahead) = &self.ahead {
+                check_ahead_silence(ahead, self.timeout, Instant::now())?;
+            }
+            // Rank 0's threads are busy with its part between frames: look every few
+            // milliseconds (workers hold runs in reserve).
+            std::thread::park_timeout(POLL_BUSY);
+        }
+        Ok(())
+    }
+}
+
+/// Rank 0's thread serving the workers between frames.
+struct Away {
+    halt: Arc<AtomicBool>,
+    handle: std::thread::JoinHandle<(Desk, Result<(), ClusterError>)>,
 }
 
 fn unexpected(rank: usize, message: &Message) -> ClusterError {
@@ -973,6 +1352,7 @@ fn unexpected(rank: usize, message: &Message) -> ClusterError {
         Message::Share { .. } => "a shared value",
         Message::Step { .. } => "a live step",
         Message::Left => "a farewell",
+        Message::Halted { .. } => "a stop's answer",
         Message::Fail { .. } => "a failure",
     };
     ClusterError::Protocol {
@@ -981,12 +1361,18 @@ fn unexpected(rank: usize, message: &Message) -> ClusterError {
     }
 }
 
-/// Rank 0's view of one worker during a frame.
+/// Rank 0's view of one worker during a job.
 #[derive(Clone, Copy, Debug)]
 struct WorkerState {
+    /// Runs handed out and not yet back.
     outstanding: usize,
     done_sent: bool,
     last_heard: Instant,
+    /// Its checks, from its ready message for a job opened ahead (checked when rank 0
+    /// starts the job).
+    checks: Option<FrameChecks>,
+    /// Runs it asked for while ahead of rank 0 and has not been given.
+    waiting: u32,
 }
 
 impl Default for WorkerState {
@@ -995,32 +1381,114 @@ impl Default for WorkerState {
             outstanding: 0,
             done_sent: false,
             last_heard: Instant::now(),
+            checks: None,
+            waiting: 0,
         }
     }
 }
 
-/// Rank 0's frame in progress.
-struct Lead<'a> {
-    job: u64,
-    checks: FrameChecks,
-    tiles: &'a [Tile],
-    /// The next run of tiles to hand out.
-    next: &'a AtomicUsize,
+/// Rank 0's state of a job (a frame shared out): its frame in progress, or the next
+/// one opened ahead of it.
+struct Job {
+    number: u64,
+    tile_count: usize,
+    /// The next run of tiles to hand out (rank 0's threads take from it too).
+    next: Arc<AtomicUsize>,
     /// Runs in the frame.
     runs: usize,
     /// The worker each run handed out and not yet back is with.
     owners: Vec<Option<usize>>,
     results: Vec<Option<TileResult>>,
+    /// Tiles that came back before rank 0 started the job: grid index, sender, render
+    /// time (checked and reported when it starts).
+    early: Vec<(usize, usize, Duration)>,
     received: usize,
     workers: Vec<WorkerState>,
 }
 
-impl Lead<'_> {
-    /// A tile rank 0's own threads rendered.
-    fn store_local(&mut self, index: usize, result: TileResult) {
-        self.results[index] = Some(result);
-        self.received += 1;
+impl Job {
+    /// Job `number`, of `tile_count` tiles, none handed out, among `size` ranks.
+    fn new(number: u64, tile_count: usize, size: usize) -> Job {
+        let runs = tile_count.div_ceil(RUN_TILES);
+        Job {
+            number,
+            tile_count,
+            next: Arc::new(AtomicUsize::new(0)),
+            runs,
+            owners: vec![None; runs],
+            results: (0..tile_count).map(|_| None).collect(),
+            early: Vec::new(),
+            received: 0,
+            workers: vec![WorkerState::default(); size],
+        }
     }
+
+    /// Up to `want` more runs for `rank`, or word that the job is done for it once the
+    /// runs are all handed out and it has returned its own; `None` when neither.
+    fn assign(&mut self, rank: usize, want: u32) -> Option<Message> {
+        let mut given = Vec::new();
+        while given.len() < want as usize {
+            let run = self.next.fetch_add(1, Ordering::Relaxed);
+            if run >= self.runs {
+                break;
+            }
+            self.owners[run] = Some(rank);
+            let tiles = run_tiles(run, self.tile_count);
+            given.push((tiles.start as u32, tiles.len() as u32));
+        }
+        let worker = &mut self.workers[rank];
+        if !given.is_empty() {
+            worker.outstanding += given.len();
+            Some(Message::Tiles {
+                job: self.number,
+                runs: given,
+            })
+        } else if worker.outstanding == 0 && !worker.done_sent {
+            worker.done_sent = true;
+            Some(Message::Done { job: self.number })
+        } else {
+            None
+        }
+    }
+
+    /// Takes back a run of tiles `rank` rendered from grid index `first` on, once it
+    /// is one the rank was given; returns each tile's grid index and render time.
+    fn take_run(
+        &mut self,
+        rank: usize,
+        first: u32,
+        tiles: Vec<(u64, TileResult)>,
+    ) -> Result<Vec<(usize, Duration)>, ClusterError> {
+        let first = first as usize;
+        let run = first / RUN_TILES;
+        let expected = run_tiles(run, self.tile_count);
+        if !first.is_multiple_of(RUN_TILES)
+            || run >= self.runs
+            || self.owners[run] != Some(rank)
+            || tiles.len() != expected.len()
+        {
+            return Err(ClusterError::Protocol {
+                rank,
+                problem: format!("tiles from {first} on were not its to return"),
+            });
+        }
+        self.owners[run] = None;
+        self.workers[rank].outstanding -= 1;
+        let mut taken = Vec::with_capacity(tiles.len());
+        for (index, (nanos, result)) in expected.zip(tiles) {
+            self.results[index] = Some(result);
+            self.received += 1;
+            taken.push((index, Duration::from_nanos(nanos)));
+        }
+        Ok(taken)
+    }
+}
+
+/// Rank 0's frame in progress: its job, its checks and its tiles.
+struct Lead<'a> {
+    job: Job,
+    checks: FrameChecks,
+    tiles: &'a [Tile],
 }
 
 /// The hash every rank compares before a frame: the species BLASes (tree and slot

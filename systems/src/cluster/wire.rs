@@ -28,12 +28,13 @@ pub(crate) enum Message {
     Loaded { error: Option<String> },
     /// Rank 0 has heard from everyone and every scene loaded: start.
     Go,
-    /// A worker has started job `job` of phase `phase` with these checks and can take
-    /// `want` runs of tiles.
+    /// A worker has started job `job` of phase `phase` with these checks and a frame of
+    /// `tiles` tiles, and can take `want` runs of them.
     Ready {
         phase: u32,
         job: u64,
         checks: FrameChecks,
+        tiles: u32,
         want: u32,
     },
     /// Runs of tiles of job `job` for the worker: (first index in the frame's tile
@@ -62,6 +63,9 @@ pub(crate) enum Message {
     Step { edits: Vec<Vec<u8>>, next: LiveStep },
     /// A worker has left the live render (its answer to [`LiveStep::Quit`]).
     Left,
+    /// A worker has left the job rank 0's stop of phase `phase` ended (its answer to
+    /// [`Message::Stop`]): nothing of that job follows it.
+    Halted { phase: u32 },
 }
 
 /// A message that could not be read.
@@ -88,6 +92,7 @@ impl Message {
                 phase,
                 job,
                 checks,
+                tiles,
                 want,
             } => {
                 out.u8(2);
@@ -96,6 +101,7 @@ impl Message {
                 out.u32(checks.frame);
                 out.u64(checks.scene);
                 out.u64(checks.view);
+                out.u32(*tiles);
                 out.u32(*want);
             }
             Message::Tiles { job, runs } => {
@@ -152,6 +158,10 @@ impl Message {
                 }
             }
             Message::Left => out.u8(10),
+            Message::Halted { phase } => {
+                out.u8(11);
+                out.u32(*phase);
+            }
         }
         out.0
     }
@@ -176,6 +186,7 @@ impl Message {
                     scene: input.u64()?,
                     view: input.u64()?,
                 },
+                tiles: input.u32()?,
                 want: input.u32()?,
             },
             3 => {
@@ -232,6 +243,9 @@ impl Message {
                 Message::Step { edits, next }
             }
             10 => Message::Left,
+            11 => Message::Halted {
+                phase: input.u32()?,
+            },
             _ => return Err(Malformed),
         };
         if input.remaining() == 0 {
@@ -498,6 +512,7 @@ mod tests {
                     scene: u64::MAX,
                     view: 17,
                 },
+                tiles: 1_200,
                 want: 2,
             },
             Message::Tiles {
@@ -529,6 +544,7 @@ mod tests {
                 next: LiveStep::Quit,
             },
             Message::Left,
+            Message::Halted { phase: u32::MAX },
         ];
         for message in messages {
             let decoded = Message::decode(&message.encode()).expect("reads back");
