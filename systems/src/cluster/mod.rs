@@ -717,7 +717,7 @@ impl Cluster {
         checks: FrameChecks,
         on_tile: &(dyn Fn(&Tile, Duration) + Sync),
     ) -> Result<Job, ClusterError> {
-        let Some(job) = self.ahead.take().filter(|job| job.number == number) else {
+        let Some(mut job) = self.ahead.take().filter(|job| job.number == number) else {
             return Ok(Job::new(number, tiles.len(), self.size));
         };
         for (rank, worker) in job.workers.iter().enumerate() {
@@ -748,9 +748,9 @@ impl Cluster {
         }
         self.last_frame.tiles_ahead += job.early.len() as u64;
         self.last_frame.tiles_elsewhere += job.early.len() as u64;
-        let mut job = job;
         job.early.clear();
-        // Workers whose frame differed from the first one's waited for this check.
+        // A worker whose tile count differed from the first one's waited for the checks
+        // (which, passed, mean equal frames).
         for rank in 1..self.size {
             let waiting = std::mem::take(&mut job.workers[rank].waiting);
             if waiting > 0
@@ -855,12 +855,12 @@ impl Cluster {
             // A worker's ready message of a phase rank 0 has ended: it was waiting for
             // a frame that never came, and asks again in the new phase.
             Message::Ready { phase, .. } if phase < self.phase => {}
-            Message::Ready { job, .. } if job == current + 1 && self.frames_follow => {
-                if let Some(answer) = serve_ahead(&mut self.ahead, job, self.size, rank, message)? {
-                    self.send(rank, &answer)?;
-                }
-            }
-            Message::Result { job, .. } if job == current + 1 => {
+            // The next frame: opened ahead when frames follow (else a ready message is
+            // kept for it), its tiles kept for it.
+            Message::Ready { job, .. } | Message::Result { job, .. }
+                if job == current + 1
+                    && (self.frames_follow || matches!(message, Message::Result { .. })) =>
+            {
                 if let Some(answer) = serve_ahead(&mut self.ahead, job, self.size, rank, message)? {
                     self.send(rank, &answer)?;
                 }
