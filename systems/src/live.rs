@@ -26,6 +26,7 @@ use sylva_engine::camera::Camera;
 use sylva_engine::components::Transform;
 use sylva_engine::discontinuity::FilteredImage;
 use sylva_engine::film::Film;
+use sylva_engine::sway::AnimationClock;
 use sylva_engine::tlas::TopLevel;
 
 /// A frame ready to be shown.
@@ -386,10 +387,26 @@ fn apply(world: &mut World, camera: Entity, command: LiveCommand) -> Applied {
 }
 
 /// Rank 0 of a cluster tells the others what comes next (nothing without a cluster).
-fn announce(world: &mut World, edits: &[Vec<u8>], next: LiveStep) -> Result<(), ClusterError> {
+/// After a frame that was not given up the workers have gone on to the next one, as
+/// when nothing changes (`workers_ahead`): unless this step is that frame with no edits
+/// (then nothing is sent), they are stopped first.
+fn announce(
+    world: &mut World,
+    edits: &[Vec<u8>],
+    next: LiveStep,
+    workers_ahead: &mut bool,
+) -> Result<(), ClusterError> {
+    let ahead = std::mem::take(workers_ahead);
+    if ahead && edits.is_empty() && next == LiveStep::Render {
+        return Ok(());
+    }
     match world.get_resource_mut::<Cluster>() {
         Some(mut cluster) if cluster.leads() => {
-            let announced = cluster.announce(edits, next);
+            let announced = match ahead {
+                true => cluster.finish(),
+                false => Ok(()),
+            }
+            .and_then(|()| cluster.announce(edits, next));
             if let Err(error) = &announced {
                 cluster.abandon(&error.to_string());
             }
@@ -400,13 +417,19 @@ fn announce(world: &mut World, edits: &[Vec<u8>], next: LiveStep) -> Result<(), 
 }
 
 /// Renders one frame of `camera` (given up, or not); the cluster's failure if the frame
-/// ended the run.
+/// ended the run. `frames_follow`: another frame is expected after it (a cluster's
+/// workers may start on it ahead of rank 0).
 fn one_frame(
     world: &mut World,
     schedule: &mut Schedule,
     camera: Entity,
+    frames_follow: bool,
 ) -> Result<crate::progressive::Progress, ClusterError> {
-    let (_, progress) = refine(world, schedule, camera, &StopAt::default(), |_, _| {
+    let stop = StopAt {
+        frames_follow,
+        ..StopAt::default()
+    };
+    let (_, progress) = refine(world, schedule, camera, &stop, |_, _| {
         crate::progressive::Flow::Stop
     });
     match world.get_resource::<Cluster>().and_then(Cluster::failure) {
@@ -426,21 +449,35 @@ pub fn serve_live(
 ) -> Result<World, ClusterError> {
     world.insert_resource(cluster);
     let mut schedule = live_schedule(&world);
+    // After a frame, the next one comes unless rank 0 stops it: start on it at once.
+    let mut ahead = false;
     loop {
-        let (edits, next) = world.resource_mut::<Cluster>().await_step()?;
-        for edit in &edits {
-            apply_encoded(&mut world, camera, edit);
-        }
-        match next {
-            LiveStep::Idle => {}
-            LiveStep::Quit => return Ok(world),
-            LiveStep::Render => {
-                one_frame(&mut world, &mut schedule, camera)?;
-                // A frame rank 0 gave up stopped this one too: on to the next.
-                world.resource_mut::<Cluster>().resume();
+        if !ahead {
+            let (edits, next) = world.resource_mut::<Cluster>().await_step()?;
+            for edit in &edits {
+                apply_encoded(&mut world, camera, edit);
+            }
+            match next {
+                LiveStep::Idle => continue,
+                LiveStep::Quit => return Ok(world),
+                LiveStep::Render => {}
             }
         }
+        let progress = one_frame(&mut world, &mut schedule, camera, true)?;
+        // A frame rank 0 stopped (given up, or one it did not render after all) sends
+        // this rank back to wait for its step.
+        world.resource_mut::<Cluster>().resume();
+        ahead = progress.cancelled == 0 && !animating(&world);
     }
+}
+
+/// True when every frame moves the world on (the wind blows): a frame started ahead of
+/// rank 0 and then stopped would have moved this rank's world alone, so workers wait for
+/// rank 0's step instead. Rank 0 decides the same from the same world.
+fn animating(world: &World) -> bool {
+    world
+        .get_resource::<AnimationClock>()
+        .is_some_and(|clock| clock.frame_seconds > 0.0)
 }
 
 /// A profile the render thread adds its frames to.
@@ -460,6 +497,8 @@ fn run(
     // Edits the other ranks of a cluster have not been sent yet.
     let mut unsent: Vec<Vec<u8>> = Vec::new();
     let mut given_up = false;
+    // A cluster's workers have gone on to the next frame.
+    let mut workers_ahead = false;
     // The map, and the top-level build and refit counts it was made at.
     let mut map: (Arc<Vec<MapPlant>>, Option<(u64, u64)>) = (Arc::default(), None);
     loop {
@@ -475,11 +514,11 @@ fn run(
                 Ok(command) => Some(command),
                 Err(RecvTimeoutError::Timeout) => {
                     // The other ranks wait for the next frame: a sign of life.
-                    announce(&mut world, &[], LiveStep::Idle)?;
+                    announce(&mut world, &[], LiveStep::Idle, &mut workers_ahead)?;
                     continue;
                 }
                 Err(RecvTimeoutError::Disconnected) => {
-                    announce(&mut world, &unsent, LiveStep::Quit)?;
+                    announce(&mut world, &unsent, LiveStep::Quit, &mut workers_ahead)?;
                     return Ok(world);
                 }
             }
@@ -494,18 +533,25 @@ fn run(
                 Applied::Here => {}
                 Applied::Everywhere(edit) => unsent.push(edit),
                 Applied::Quit => {
-                    announce(&mut world, &unsent, LiveStep::Quit)?;
+                    announce(&mut world, &unsent, LiveStep::Quit, &mut workers_ahead)?;
                     return Ok(world);
                 }
             }
             applied = number;
         }
-        announce(&mut world, &unsent, LiveStep::Render)?;
+        announce(&mut world, &unsent, LiveStep::Render, &mut workers_ahead)?;
         unsent.clear();
         // One frame, whether or not it restarted the film; nothing to show when it was
         // given up.
-        let progress = one_frame(&mut world, &mut schedule, camera)?;
+        let frames = world.get::<Film>(camera).map_or(0, Film::frames);
+        let progress = one_frame(
+            &mut world,
+            &mut schedule,
+            camera,
+            frames.saturating_add(1) < max_frames,
+        )?;
         given_up = progress.cancelled > 0;
+        workers_ahead = !given_up && !animating(&world);
         if given_up {
             log.lock().unwrap_or_else(PoisonError::into_inner).cancelled += 1;
             // The given-up frame's times are not a frame's.
@@ -526,7 +572,7 @@ fn run(
         }
         let shown_start = std::time::Instant::now();
         let Some(film) = world.get::<Film>(camera) else {
-            announce(&mut world, &[], LiveStep::Quit)?;
+            announce(&mut world, &[], LiveStep::Quit, &mut workers_ahead)?;
             return Ok(world);
         };
         let exposure = world.get::<Camera>(camera).map_or(0.0, |c| c.exposure);
