@@ -224,7 +224,8 @@ pub struct Cluster {
     next_job: u64,
     /// Phases of the run rank 0 has ended with [`finish`](Self::finish).
     phase: u32,
-    /// Messages rank 0 received for a job after the next one.
+    /// Workers' ready messages for a job rank 0 has not started and not opened ahead
+    /// (a later one, or the next when no frames were said to follow), kept for it.
     deferred: Vec<(usize, Message)>,
     /// The job rank 0 starts next, opened ahead of it by a worker ready for it.
     ahead: Option<Job>,
