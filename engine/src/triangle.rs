@@ -22,15 +22,20 @@ pub struct WatertightRay {
 
 /// Four triangles in structure-of-arrays form, the unit of the bottom-level leaf test:
 /// `corners[c][axis]` holds coordinate `axis` (x, y, z) of corner `c` of the four lanes'
-/// triangles, so a ray reads the axes in its own order with plain loads.
+/// triangles, so a ray reads the axes in its own order with plain loads. 160 bytes,
+/// aligned to 32 rather than to a cache line: a block spans three lines either way, and
+/// the tighter packing saves a sixth of the blocks' memory (30 MB on `paper`).
 #[derive(Clone, Copy, Debug, PartialEq)]
-#[repr(C, align(64))]
+#[repr(C, align(32))]
 pub struct TriangleBlock {
     /// Corner `c`, axis `axis`, four lanes.
     pub corners: [[Vec4; 3]; 3],
     /// The mesh's index of each lane's triangle.
     pub triangles: [u32; 4],
 }
+
+// The layout the comment above describes: no padding after the triangle indices.
+const _: () = assert!(std::mem::size_of::<TriangleBlock>() == 160);
 
 impl TriangleBlock {
     /// The block of up to four triangles `(index, corners)`; lanes past them repeat the
