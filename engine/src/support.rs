@@ -15,10 +15,34 @@ use rayon::prelude::*;
 const CELLS: usize = 8;
 
 /// Grid vertices per side.
-const SIDE: usize = CELLS + 1;
+pub(crate) const SIDE: usize = CELLS + 1;
 
 /// Grid vertices: the sampled directions.
-const DIRECTIONS: usize = SIDE * SIDE;
+pub(crate) const DIRECTIONS: usize = SIDE * SIDE;
+
+/// The samples at the four corners `(i, j)`, `(i + 1, j)`, `(i, j + 1)` and `(i + 1,
+/// j + 1)` of eight grid cells.
+pub(crate) type CellCorners = [[f32; 8]; 4];
+
+/// [`CellCorners`] of the cells at `(iu, iv)` (whole numbers in `0 ..= CELLS − 1`), one
+/// load at a time; `crate::bvh::simd` gathers them eight at a time where it can.
+#[inline(always)]
+pub(crate) fn cell_corners(
+    samples: &[f32; DIRECTIONS],
+    iu: &[f32; 8],
+    iv: &[f32; 8],
+) -> CellCorners {
+    const MAGIC: f32 = 8_388_608.0;
+    let mut corners = [[0.0f32; 8]; 4];
+    for k in 0..8 {
+        let index = |f: f32| ((f + MAGIC).to_bits() & 0x7f_ffff) as usize;
+        let (i, j) = (index(iu[k]), index(iv[k]));
+        let at = |di: usize, dj: usize| samples[((i + di) * SIDE + j + dj).min(DIRECTIONS - 1)];
+        (corners[0][k], corners[1][k], corners[2][k], corners[3][k]) =
+            (at(0, 0), at(1, 0), at(0, 1), at(1, 1));
+    }
+    corners
+}
 
 /// Relative slack added to a bound, far above the rounding of the few operations between
 /// the samples and a bound (a few f32 ulps of the mesh's radius).
@@ -102,6 +126,19 @@ impl SupportTable {
     /// instance box were a sixth of a 365 k-instance top-level build.
     #[inline(always)]
     pub fn support8(&self, dx: [f32; 8], dy: [f32; 8], dz: [f32; 8]) -> [f32; 8] {
+        self.support8_with(dx, dy, dz, cell_corners)
+    }
+
+    /// [`support8`](Self::support8) with the sample loads of `corners`, which must
+    /// return what [`cell_corners`] returns.
+    #[inline(always)]
+    pub(crate) fn support8_with(
+        &self,
+        dx: [f32; 8],
+        dy: [f32; 8],
+        dz: [f32; 8],
+        corners: impl FnOnce(&[f32; DIRECTIONS], &[f32; 8], &[f32; 8]) -> CellCorners,
+    ) -> [f32; 8] {
         let Some(samples) = &self.samples else {
             return [f32::NEG_INFINITY; 8];
         };
@@ -138,13 +175,7 @@ impl SupportTable {
             iv[k] = floor(f).min((CELLS - 1) as f32);
             fv[k] = f - iv[k];
         }
-        let (mut h00, mut h10, mut h01, mut h11) = ([0.0f32; 8], [0.0; 8], [0.0; 8], [0.0; 8]);
-        for k in 0..8 {
-            let index = |f: f32| ((f + MAGIC).to_bits() & 0x7f_ffff) as usize;
-            let (i, j) = (index(iu[k]), index(iv[k]));
-            let at = |di: usize, dj: usize| samples[((i + di) * SIDE + j + dj).min(DIRECTIONS - 1)];
-            (h00[k], h10[k], h01[k], h11[k]) = (at(0, 0), at(1, 0), at(0, 1), at(1, 1));
-        }
+        let [h00, h10, h01, h11] = corners(samples, &iu, &iv);
         // The cell splits along the diagonal the octahedron's fold takes in its quadrant,
         // so each half lies on one face, where the map is affine and the corners'
         // directions combine into the direction exactly, with weights ≥ 0. On either
@@ -173,16 +204,28 @@ impl SupportTable {
     /// [`crate::bvh::simd::transformed_bounds`], which compiles it for AVX2.
     #[inline(always)]
     pub fn transformed_bounds(&self, transform: &Affine3A) -> Aabb {
+        self.transformed_bounds_with(transform, cell_corners)
+    }
+
+    /// [`transformed_bounds`](Self::transformed_bounds) with the sample loads of
+    /// `corners`, as in [`support8_with`](Self::support8_with).
+    #[inline(always)]
+    pub(crate) fn transformed_bounds_with(
+        &self,
+        transform: &Affine3A,
+        corners: impl FnOnce(&[f32; DIRECTIONS], &[f32; 8], &[f32; 8]) -> CellCorners,
+    ) -> Aabb {
         if self.samples.is_none() {
             return Aabb::EMPTY;
         }
         let rows = transform.matrix3.transpose();
         let [x, y, z] = [rows.x_axis, rows.y_axis, rows.z_axis];
         // The six directions ±row, and two spare lanes on a harmless direction.
-        let h = self.support8(
+        let h = self.support8_with(
             [x.x, y.x, z.x, -x.x, -y.x, -z.x, 1.0, 1.0],
             [x.y, y.y, z.y, -x.y, -y.y, -z.y, 0.0, 0.0],
             [x.z, y.z, z.z, -x.z, -y.z, -z.z, 0.0, 0.0],
+            corners,
         );
         let t = transform.translation;
         let max = t + Vec3A::new(h[0], h[1], h[2]);

@@ -170,21 +170,6 @@ fn world_bounds(library: &GeometryLibrary, desc: &InstanceDesc) -> Result<Aabb, 
     Ok(geometry.transformed_bounds(&desc.transform))
 }
 
-/// An instance's record (with the inverse transform), or why it cannot enter the tree.
-fn record(
-    library: &GeometryLibrary,
-    id: u32,
-    desc: &InstanceDesc,
-) -> Result<InstanceRecord, Unusable> {
-    let (_, world_to_object) = usable(library, desc)?;
-    Ok(InstanceRecord {
-        object_to_world: desc.transform,
-        world_to_object,
-        geometry: desc.geometry,
-        id,
-    })
-}
-
 /// An instance's world box and record, computing its inverse once, or why it cannot
 /// enter the tree.
 fn placed(
@@ -290,8 +275,14 @@ impl TopLevel {
                     prefetch(&instances[ahead as usize]);
                 }
                 let i = slots[slot];
-                record(library, i, &instances[i as usize])
-                    .expect("the BVH keeps only boxes of usable instances")
+                // The tree holds usable instances only: their inverses are finite.
+                let desc = &instances[i as usize];
+                InstanceRecord {
+                    object_to_world: desc.transform,
+                    world_to_object: desc.transform.inverse(),
+                    geometry: desc.geometry,
+                    id: i,
+                }
             }));
         let mut in_tree = vec![false; instances.len()];
         for &i in slots {

@@ -173,6 +173,7 @@ mod avx2 {
     };
     use crate::bvh::{Bvh, TraversalStats};
     use crate::math::Ray;
+    use crate::support::{CellCorners, DIRECTIONS, SIDE};
     use crate::triangle::{TriangleBlock, WatertightRay};
     use glam::Vec4;
     use std::arch::x86_64::*;
@@ -250,10 +251,45 @@ mod avx2 {
         }
     }
 
-    /// The support-function box, its inlined body compiled for AVX2.
+    /// The support-function box, its inlined body compiled for AVX2, the samples at
+    /// the cells' corners gathered eight at a time.
     #[target_feature(enable = "avx2")]
     fn transformed_bounds(table: &SupportTable, transform: &Affine3A) -> Aabb {
-        table.transformed_bounds(transform)
+        // The closure inherits this function's target features.
+        table.transformed_bounds_with(transform, |samples, iu, iv| {
+            gather_cell_corners(samples, iu, iv)
+        })
+    }
+
+    /// [`cell_corners`](crate::support::cell_corners) with AVX2 gathers: the same
+    /// samples, indices clamped into the table as there.
+    #[target_feature(enable = "avx2")]
+    #[inline]
+    fn gather_cell_corners(
+        samples: &[f32; DIRECTIONS],
+        iu: &[f32; 8],
+        iv: &[f32; 8],
+    ) -> CellCorners {
+        // SAFETY: 8 f32 each; loads need no alignment.
+        let (iu, iv) = unsafe { (_mm256_loadu_ps(iu.as_ptr()), _mm256_loadu_ps(iv.as_ptr())) };
+        // Whole numbers in 0 ..= CELLS − 1: the truncation is exact.
+        let (i, j) = (_mm256_cvttps_epi32(iu), _mm256_cvttps_epi32(iv));
+        let base = _mm256_add_epi32(_mm256_mullo_epi32(i, _mm256_set1_epi32(SIDE as i32)), j);
+        let last = _mm256_set1_epi32(DIRECTIONS as i32 - 1);
+        let gather = |offset: usize| {
+            let index = _mm256_add_epi32(base, _mm256_set1_epi32(offset as i32));
+            // In the table whatever the inputs: 0 ..= DIRECTIONS − 1.
+            let index = _mm256_max_epi32(_mm256_min_epi32(index, last), _mm256_setzero_si256());
+            let mut out = [0.0f32; 8];
+            // SAFETY: every index lies in `samples` (clamped above); the store is of
+            // eight f32 into `out`.
+            unsafe {
+                let v = _mm256_i32gather_ps::<4>(samples.as_ptr(), index);
+                _mm256_storeu_ps(out.as_mut_ptr(), v);
+            }
+            out
+        };
+        [gather(0), gather(SIDE), gather(1), gather(SIDE + 1)]
     }
 
     /// One traversal loop, kept out of line: inlined into the top level's instance
