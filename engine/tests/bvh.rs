@@ -6,7 +6,9 @@ mod common;
 use common::*;
 use glam::{Affine3A, Vec3, Vec3A};
 use proptest::prelude::*;
-use sylva_engine::bvh::{BuildParams, BuildScratch, Bvh, PADDING, TraversalStats, WIDTH};
+use sylva_engine::bvh::{
+    BuildParams, BuildScratch, Bvh, GRID_FROM, PADDING, TraversalStats, WIDTH,
+};
 use sylva_engine::geometry::{Geometry, GeometryId, GeometryLibrary};
 use sylva_engine::math::{Aabb, Ray};
 use sylva_engine::mesh::TriangleMesh;
@@ -246,7 +248,9 @@ fn build_is_identical_on_any_thread_count() {
 #[test]
 fn a_rebuild_in_used_memory_equals_a_fresh_build() {
     let mut rng = TestRng::new(17);
-    let mut inputs: Vec<Vec<Aabb>> = [20_000, 300, 9_000]
+    // The first is large enough for the top level's grid cells, and leaves its sorted
+    // primitives in the scratch memory the others reuse.
+    let mut inputs: Vec<Vec<Aabb>> = [GRID_FROM + 7_000, 300, 9_000]
         .into_iter()
         .map(|n| bounds_of(&random_mesh(&mut rng, n, 10.0, 0.3)))
         .collect();
@@ -675,4 +679,40 @@ fn clustered_top_level_trees_give_every_primitive_a_lane_and_stay_as_good() {
     };
     let ratio = node_cost(&clustered) / node_cost(&plain);
     assert!((0.9..1.1).contains(&ratio), "node cost ratio {ratio}");
+}
+
+/// Above [`GRID_FROM`] primitives the top level splits between grid cells first: that
+/// path runs (its tree differs from the one without cells), and its hits equal brute
+/// force, for triangles spread over a plane as plants are and over a volume.
+#[test]
+fn grid_cell_top_levels_match_brute_force() {
+    let mut rng = TestRng::new(41);
+    let n = GRID_FROM + 5_000;
+    let flat = {
+        let mut mesh = random_mesh(&mut rng, n, 60.0, 0.8);
+        for p in &mut mesh.positions {
+            p.y *= 0.05;
+        }
+        mesh
+    };
+    let volume = random_mesh(&mut rng, n, 20.0, 0.8);
+    let without_cells = BuildParams {
+        grid_cell: 0,
+        ..BuildParams::TOP_LEVEL
+    };
+    for (name, mesh) in [("flat", flat), ("volume", volume)] {
+        let bounds = bounds_of(&mesh);
+        let (gridded, plain) = (
+            Bvh::build(&bounds, BuildParams::TOP_LEVEL),
+            Bvh::build(&bounds, without_cells),
+        );
+        gridded.validate(&bounds).unwrap();
+        assert_ne!(
+            gridded.content_hash(),
+            plain.content_hash(),
+            "{name}: no cells made"
+        );
+        let rays: Vec<Ray> = (0..400).map(|_| random_ray(&mut rng, 70.0)).collect();
+        check_mesh_against_brute_force(mesh, &rays, BuildParams::TOP_LEVEL);
+    }
 }

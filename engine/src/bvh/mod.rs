@@ -13,7 +13,7 @@ mod traverse;
 mod validate;
 mod wide;
 
-pub use build::{BuildParams, BuildScratch};
+pub use build::{BuildParams, BuildScratch, GRID_FROM};
 pub use node::BvhNode;
 pub use refit::RefitError;
 pub use traverse::{LeafVisit, NodeRay, TraversalStats};
