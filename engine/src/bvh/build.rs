@@ -37,7 +37,8 @@ pub struct BuildParams {
     pub lane_cluster: usize,
     /// Builds of at least [`GRID_FROM`] primitives that bin one axis first sort them
     /// into the cells of a grid, about this many to a cell: the SAH then splits between
-    /// whole cells down to single ones, and each cell's tree is built as usual (0: off).
+    /// whole cells down to single ones, and each cell's tree is built as usual (0: off;
+    /// cells hold at least 64 on average).
     pub grid_cell: usize,
 }
 
@@ -902,7 +903,8 @@ fn sort_into_cells(
     cell_size: usize,
 ) -> Vec<Cell> {
     let extent = centroids.extent();
-    let wanted = (refs.len() / cell_size.max(1)).max(1);
+    // Cells of fewer than 64 would cost more pieces and bookkeeping than they save.
+    let wanted = (refs.len() / cell_size.max(64)).max(1);
     let cells_along = |side: f32| -> [usize; 3] {
         [0, 1, 2].map(|axis| {
             let cells = (extent[axis] / side).ceil();
@@ -932,23 +934,56 @@ fn sort_into_cells(
         let [i, j, l] = [0, 1, 2].map(|axis| (k[axis] as usize).min(dims[axis] - 1));
         ((i * dims[1] + j) * dims[2] + l) as u32
     };
-    let cell_of_ref: Vec<u32> = refs.par_iter().map(cell_of).collect();
-    // A counting sort: where each cell starts, then each primitive to the next place
-    // of its cell.
+    // A counting sort in fixed chunks (the same order on any thread count): each
+    // chunk's histogram, then every (cell, chunk) pair's place in `out`, cell-major,
+    // then each chunk moves its primitives into its places, all chunks at once.
+    // At most 16 chunks, so the pieces below number at most 16 per cell.
+    let chunk_size = refs.len().div_ceil(16).max(1 << 12);
+    let cells_and_counts: Vec<(Vec<u32>, Vec<u32>)> = refs
+        .par_chunks(chunk_size)
+        .map(|chunk| {
+            let cells: Vec<u32> = chunk.iter().map(cell_of).collect();
+            let mut counts = vec![0u32; count];
+            for &cell in &cells {
+                counts[cell as usize] += 1;
+            }
+            (cells, counts)
+        })
+        .collect();
     let mut starts = vec![0u32; count + 1];
-    for &cell in &cell_of_ref {
-        starts[cell as usize + 1] += 1;
+    for (_, counts) in &cells_and_counts {
+        for (cell, &n) in counts.iter().enumerate() {
+            starts[cell + 1] += n;
+        }
     }
     for cell in 0..count {
         starts[cell + 1] += starts[cell];
     }
-    let mut next = starts.clone();
     out.clear();
     out.resize(refs.len(), refs[0]);
-    for (r, &cell) in refs.iter().zip(&cell_of_ref) {
-        out[next[cell as usize] as usize] = *r;
-        next[cell as usize] += 1;
+    // Cut `out` into one piece per cell and chunk, handed to the chunks.
+    let mut places: Vec<Vec<&mut [PrimRef]>> = (0..cells_and_counts.len())
+        .map(|_| Vec::with_capacity(count))
+        .collect();
+    let mut rest = out.as_mut_slice();
+    for cell in 0..count {
+        for (chunk, (_, counts)) in cells_and_counts.iter().enumerate() {
+            let (piece, tail) = rest.split_at_mut(counts[cell] as usize);
+            places[chunk].push(piece);
+            rest = tail;
+        }
     }
+    refs.par_chunks(chunk_size)
+        .zip(places.par_iter_mut())
+        .zip(cells_and_counts.par_iter())
+        .for_each(|((chunk, pieces), (cells, _))| {
+            let mut filled = vec![0usize; count];
+            for (r, &cell) in chunk.iter().zip(cells) {
+                let cell = cell as usize;
+                pieces[cell][filled[cell]] = *r;
+                filled[cell] += 1;
+            }
+        });
     let ranges: Vec<(u32, u32)> = starts
         .windows(2)
         .filter(|w| w[1] > w[0])
