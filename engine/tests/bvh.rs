@@ -199,12 +199,11 @@ fn parallel_build_equals_sequential_build() {
         });
     parallel.validate(&bounds).unwrap();
     assert_eq!(parallel.prim_indices, sequential.prim_indices);
-    assert_eq!(parallel.nodes.len(), sequential.nodes.len());
+    assert_eq!(parallel.wide.len(), sequential.wide.len());
 }
 
-/// The tree (binary nodes, wide nodes, slot order) is the same bits on any pool size:
-/// large enough for parallel binning at the root, parallel subtrees and the parallel
-/// collapse, for every preset.
+/// The tree (nodes and slot order) is the same bits on any pool size: large enough for
+/// parallel binning at the root and parallel subtrees, for every preset.
 #[test]
 fn build_is_identical_on_any_thread_count() {
     let mut rng = TestRng::new(11);
@@ -222,7 +221,6 @@ fn build_is_identical_on_any_thread_count() {
         let three = build_on(3, params);
         one.validate(&bounds).unwrap();
         assert_eq!(one.prim_indices, three.prim_indices, "{name}: slot order");
-        assert!(one.nodes == three.nodes, "{name}: binary nodes differ");
         assert!(one.wide == three.wide, "{name}: wide nodes differ");
         assert_eq!(one.content_hash(), three.content_hash(), "{name}: hash");
         // Any change to what traversal reads changes the hash.
@@ -265,10 +263,6 @@ fn a_rebuild_in_used_memory_equals_a_fresh_build() {
             reused.rebuild(bounds, params, &mut scratch);
             let fresh = Bvh::build(bounds, params);
             assert_eq!(reused.prim_indices, fresh.prim_indices, "{name}, input {i}");
-            assert!(
-                reused.nodes == fresh.nodes,
-                "{name}, input {i}: binary nodes"
-            );
             assert!(reused.wide == fresh.wide, "{name}, input {i}: wide nodes");
         }
     }
@@ -285,7 +279,6 @@ fn a_rebuild_in_used_memory_equals_a_fresh_build() {
         reused.rebuild(&lib, descs, BuildParams::TOP_LEVEL);
         let fresh = TopLevel::build(&lib, descs, BuildParams::TOP_LEVEL);
         assert_eq!(reused.instances, fresh.instances, "set {i}: records");
-        assert!(reused.bvh.nodes == fresh.bvh.nodes, "set {i}: nodes");
         assert!(reused.bvh.wide == fresh.bvh.wide, "set {i}: wide nodes");
         assert_eq!(reused.content_hash(), fresh.content_hash(), "set {i}: hash");
         if !reused.instances.is_empty() {
@@ -544,20 +537,6 @@ fn validate_rejects_corrupted_trees() {
         "a primitive referenced twice"
     );
 
-    let mut shrunk_binary = good.clone();
-    let leaf = shrunk_binary
-        .nodes
-        .iter()
-        .position(|n| n.is_leaf())
-        .unwrap();
-    let n = shrunk_binary.nodes[leaf];
-    shrunk_binary.nodes[leaf] =
-        sylva_engine::bvh::BvhNode::leaf(Aabb::new(n.min(), n.min()), n.first(), n.count());
-    assert!(
-        shrunk_binary.validate(&bounds).is_err(),
-        "a binary leaf box too small"
-    );
-
     let mut cycle = good.clone();
     cycle.wide[0].children[0] = 0;
     cycle.wide[0].counts[0] = 0;
@@ -662,9 +641,13 @@ fn clustered_top_level_trees_give_every_primitive_a_lane_and_stay_as_good() {
     };
     assert!(leaf_lanes(&clustered).iter().all(|&c| c == 1));
     assert_eq!(leaf_lanes(&clustered).len(), 3000);
-    // The binary tree stopped splitting at clusters of up to eight.
-    let largest = clustered.nodes.iter().map(|n| n.count()).max().unwrap();
-    assert!((2..=8).contains(&largest), "largest binary leaf {largest}");
+    // Clusters of up to eight fill the lanes: fewer nodes than leaves of one make.
+    assert!(
+        clustered.wide.len() < plain.wide.len(),
+        "{} nodes clustered, {} not",
+        clustered.wide.len(),
+        plain.wide.len()
+    );
     // The wide trees cost rays about the same: the surface-area cost of their nodes.
     let node_cost = |bvh: &Bvh| {
         bvh.wide

@@ -305,7 +305,7 @@ fn two_sided_plane_is_seen_from_both_sides() {
             .all(|s| s.double_sided)
     );
     let kernel = q.kernel();
-    let bounds = q.top_level.bvh.nodes[0].bounds();
+    let bounds = q.top_level.bvh.bounds();
     let centre = bounds.center();
     let mut seen = 0;
     for axis in [Vec3A::X, Vec3A::Y, Vec3A::Z] {

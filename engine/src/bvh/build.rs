@@ -1,10 +1,14 @@
 //! Binned SAH construction (Wald 2007, "On fast construction of SAH-based bounding
-//! volume hierarchies"), parallel over subtrees with `rayon::join` and over primitives
-//! when binning large nodes. The result depends only on the input, never on the number of
-//! threads: subtrees are spliced in a fixed order and binning reductions are exact
-//! (min/max and integer counts).
+//! volume hierarchies") straight into 8-wide nodes: each wide node takes the two halves
+//! of a SAH split and keeps splitting its widest lane until it has eight (what
+//! collapsing a binary tree top-down gives, without the binary tree). Parallel over
+//! subtrees and split halves with rayon, and over primitives when binning large nodes.
+//! The result depends only on the input, never on the number of threads: subtrees are
+//! laid out in a fixed order and binning reductions are exact (min/max and integer
+//! counts).
 
-use super::{Bvh, BvhNode, MAX_DEPTH};
+use super::wide::{WIDTH, WideNode};
+use super::{Bvh, MAX_DEPTH};
 use crate::math::Aabb;
 use glam::{Vec3A, Vec4};
 use rayon::prelude::*;
@@ -30,8 +34,8 @@ pub struct BuildParams {
     /// block `s / n`). 1 counts each primitive and pads nothing.
     pub leaf_block: usize,
     /// Nodes of at most this many primitives (up to [`WIDTH`](super::WIDTH)) are not
-    /// split: the binary tree keeps them as one leaf, a cluster, and the wide tree gives
-    /// each of their primitives a lane of its own, in the node above when it has the
+    /// split but kept as one cluster, and the wide tree gives each of their primitives a
+    /// lane of its own, in the node above when it has the
     /// lanes to spare, else in a node of their own. 1 turns it off; it applies only to
     /// trees of one-primitive leaves (`max_leaf_size` and `leaf_block` 1).
     pub lane_cluster: usize,
@@ -257,6 +261,11 @@ struct Scratch {
     /// Each primitive's bin on the one axis binned, in the node's order, written by
     /// [`fill_bins`] and read by [`partition_by_bins`] (bins < 256).
     prim_bins: Vec<[u8; 3]>,
+    /// The evaluated nodes of the wide nodes under construction, a stack: each wide
+    /// node's lanes above its parent's, until it is made.
+    lanes: Vec<Node>,
+    /// The children's extents of the split nodes in `lanes` (and of their ancestors').
+    children: Vec<[Extent; 2]>,
 }
 
 impl Scratch {
@@ -265,6 +274,8 @@ impl Scratch {
             bins: vec![EMPTY_BIN; 3 * MAX_BINS],
             right_cost: vec![0.0; MAX_BINS],
             prim_bins: Vec::new(),
+            lanes: Vec::new(),
+            children: Vec::new(),
         }
     }
 }
@@ -273,43 +284,76 @@ struct Builder {
     params: BuildParams,
 }
 
-/// A subtree built by one task, with its scratch memory: its nodes (root first, child
-/// indices local to `nodes`) and the subtrees its parallel splits handed to other tasks,
-/// each with the local index of the placeholder its root replaces.
-struct Subtree {
-    nodes: Vec<BvhNode>,
-    scratch: Scratch,
-    attached: Vec<(usize, Subtree)>,
+/// A node of the binary tree the SAH splits make, evaluated (its split found and its
+/// primitives partitioned) when it becomes a lane of a wide node under construction.
+/// Small, as the lane lists copy it about: its children's extents wait in
+/// `Scratch::children`.
+#[derive(Clone, Copy)]
+struct Node {
+    bounds: Aabb,
+    /// First slot: the node's primitives are `refs[first .. first + count]`.
+    first: u32,
+    count: u32,
+    /// Depth in the binary tree (the root 0), for the forced median splits.
+    depth: u32,
+    split: NodeSplit,
 }
 
-impl Subtree {
-    /// Nodes in this subtree and all attached ones (placeholders not counted).
-    fn node_count(&self) -> usize {
-        self.nodes.len()
-            + self
-                .attached
-                .iter()
-                .map(|(_, s)| s.node_count() - 1)
-                .sum::<usize>()
+#[derive(Clone, Copy)]
+enum NodeSplit {
+    /// Not split: a leaf, or with lane clusters a cluster of one-slot lanes.
+    Leaf,
+    /// One primitive of an opened cluster, in a lane of its own.
+    Slot,
+    /// Split by the SAH after the first `left_count` slots; its children's extents are
+    /// `Scratch::children[children]`.
+    Binned { left_count: u32, children: u32 },
+    /// A split of the cells' tree, by its index there.
+    Cells(u32),
+}
+
+/// Wide nodes built by one task (child indices local to `nodes`), and the pieces other
+/// tasks built below them, each with the node and lane that points at its root.
+#[derive(Default)]
+struct Piece {
+    nodes: Vec<WideNode>,
+    attached: Vec<(usize, usize, Piece)>,
+}
+
+impl Piece {
+    /// Lists this piece and the attached ones in the order they are laid out, each with
+    /// its first index there, from `base`; returns the end. `links` receives, for each
+    /// attached piece, the absolute index of the node and the lane that point at it and
+    /// its root's index.
+    fn lay_out<'a>(
+        &'a self,
+        base: usize,
+        order: &mut Vec<(&'a Piece, usize)>,
+        links: &mut Vec<(usize, usize, u32)>,
+    ) -> usize {
+        order.push((self, base));
+        let mut end = base + self.nodes.len();
+        for (node, lane, piece) in &self.attached {
+            links.push((base + node, *lane, end as u32));
+            end = piece.lay_out(end, order, links);
+        }
+        end
     }
 
-    /// Appends the nodes to `out` in one copy each, the root at `root_at` (already in
-    /// `out`) and the rest after the current end, with child indices made absolute.
-    fn flatten_into(self, root_at: usize, out: &mut Vec<BvhNode>) {
-        let base = out.len();
-        let placed = |node: &BvhNode| {
-            if node.is_leaf() {
-                *node
-            } else {
-                node.with_first((base + node.first() as usize - 1) as u32)
-            }
-        };
-        out[root_at] = placed(&self.nodes[0]);
-        for node in &self.nodes[1..] {
-            out.push(placed(node));
-        }
-        for (slot, subtree) in self.attached {
-            subtree.flatten_into(base + slot - 1, out);
+    /// Writes the nodes of this piece and the attached ones into `out` (cleared first)
+    /// with absolute child indices, this piece's root first.
+    fn flatten_into(&self, out: &mut Vec<WideNode>) {
+        let (mut order, mut links) = (Vec::new(), Vec::new());
+        let end = self.lay_out(0, &mut order, &mut links);
+        // Copied in parallel straight into the result (an indexed collect): a serial
+        // copy of 70 k nodes was 1–2 ms of a 365 k-instance top-level build.
+        out.clear();
+        out.par_extend((0..end).into_par_iter().map(|index| {
+            let (piece, base) = order[order.partition_point(|&(_, base)| base <= index) - 1];
+            piece.nodes[index - base].with_children_offset(base as u32)
+        }));
+        for (node, lane, root) in links {
+            out[node].children[lane] = root;
         }
     }
 }
@@ -320,7 +364,7 @@ impl Subtree {
 #[derive(Clone, Default)]
 pub struct BuildScratch {
     refs: Vec<PrimRef>,
-    /// The primitives sorted by grid cell, swapped with `refs`.
+    /// The primitives sorted by grid cell, in the order of the cells' tree.
     sorted: Vec<PrimRef>,
 }
 
@@ -389,9 +433,9 @@ impl Bvh {
                     .map(|(i, b)| PrimRef::new(b, i as u32)),
             );
         }
-        self.nodes.clear();
         self.wide.clear();
         self.prim_indices.clear();
+        self.root_bounds = Aabb::EMPTY;
         if refs.is_empty() {
             return;
         }
@@ -401,127 +445,380 @@ impl Bvh {
             .reduce(|| Extent::EMPTY, Extent::union);
         let builder = Builder { params };
         let gridded = params.grid_cell > 0 && params.longest_axis_only && refs.len() >= GRID_FROM;
-        let cells = if gridded {
-            let cells = sort_into_cells(
-                refs,
-                &mut scratch.sorted,
-                &extent.centroids,
-                params.grid_cell,
-            );
-            // Without cells (a grid of one) nothing was sorted.
-            if !cells.is_empty() {
-                std::mem::swap(refs, &mut scratch.sorted);
-            }
-            cells
+        let cell_tree = if gridded {
+            builder.sort_into_cells(refs, &mut scratch.sorted, &extent.centroids)
         } else {
             Vec::new()
         };
-        let tree = if cells.len() > 1 {
-            builder.build_over_cells(refs, cells, extent)
+        // Sorted into cells (not a grid of one): the cells' tree splits the root.
+        let refs = if cell_tree.is_empty() {
+            refs.as_mut_slice()
         } else {
-            builder.build_subtree(refs, 0, extent, 0)
+            scratch.sorted.as_mut_slice()
         };
-        self.nodes.reserve(tree.node_count());
-        self.nodes.push(tree.nodes[0]);
-        tree.flatten_into(0, &mut self.nodes);
+        let mut root_scratch = Scratch::new();
+        let root = builder.evaluate(
+            refs,
+            0,
+            extent,
+            0,
+            (!cell_tree.is_empty()).then_some(0),
+            &mut root_scratch,
+        );
+        let mut piece = Piece::default();
+        builder.emit(root, refs, &cell_tree, &mut root_scratch, &mut piece);
+        piece.flatten_into(&mut self.wide);
+        self.root_bounds = extent.bounds;
         self.prim_indices
             .par_extend(refs.par_iter().map(PrimRef::index));
         if params.leaf_block > 1 {
-            self.prim_indices =
-                align_leaves(&mut self.nodes, &self.prim_indices, params.leaf_block);
+            self.prim_indices = align_leaves(&mut self.wide, &self.prim_indices, params.leaf_block);
         }
-        let slot_bounds = |slot: u32| refs[slot as usize].bounds();
-        let clusters = (params.lane_cluster > 1).then_some(&slot_bounds as _);
-        super::wide::collapse_into(&self.nodes, &mut self.wide, clusters);
     }
 }
 
 impl Builder {
-    fn build_subtree(
+    /// Finds the split of the node over `refs` (its primitives, from slot `first`) and
+    /// partitions them by it: what the node's parent needs to know of it as a lane.
+    /// Nodes of the cells' tree (`cell_node`) are split as that tree says.
+    fn evaluate(
         &self,
         refs: &mut [PrimRef],
-        prim_offset: u32,
+        first: u32,
         extent: Extent,
-        depth: usize,
-    ) -> Subtree {
-        // At most 2n − 1 nodes; a subtree that splits in parallel keeps only a few.
+        depth: u32,
+        cell_node: Option<u32>,
+        scratch: &mut Scratch,
+    ) -> Node {
         let n = refs.len();
-        let capacity = if n >= self.params.parallel_threshold {
-            3
-        } else {
-            2 * n
+        let node = |split| Node {
+            bounds: extent.bounds,
+            first,
+            count: n as u32,
+            depth,
+            split,
         };
-        let mut nodes = Vec::with_capacity(capacity);
-        nodes.push(BvhNode::leaf(extent.bounds, prim_offset, 0));
-        let mut work = Subtree {
-            nodes,
-            scratch: Scratch::new(),
-            attached: Vec::new(),
+        if let Some(index) = cell_node {
+            return node(NodeSplit::Cells(index));
+        }
+        let (mid, left, right) = match self.find_split(refs, &extent, depth as usize, scratch) {
+            Split::Leaf => return node(NodeSplit::Leaf),
+            Split::Median => {
+                let mid = n / 2;
+                (mid, Extent::of(&refs[..mid]), Extent::of(&refs[mid..]))
+            }
+            Split::Binned {
+                axis,
+                bin,
+                bins,
+                scale,
+                min,
+                left,
+                right,
+            } => {
+                // Binning along one axis records each primitive's bin (a pair's split
+                // is made without binning).
+                let mid = if self.params.longest_axis_only && n > 2 {
+                    partition_by_bins(refs, &scratch.prim_bins[..n], axis, bin)
+                } else {
+                    let scale = axis_scale(scale, axis);
+                    partition(refs, |c| bin_on_axis(c, scale, min, bins) < bin)
+                };
+                (mid, left, right)
+            }
         };
-        self.build_node(refs, prim_offset, extent, depth, &mut work, 0);
-        work
+        scratch.children.push([left, right]);
+        node(NodeSplit::Binned {
+            left_count: mid as u32,
+            children: scratch.children.len() as u32 - 1,
+        })
     }
 
-    fn build_node(
-        &self,
-        refs: &mut [PrimRef],
-        prim_offset: u32,
-        extent: Extent,
-        depth: usize,
-        work: &mut Subtree,
-        at: usize,
-    ) {
-        let n = refs.len();
-        let (mid, left_extent, right_extent) =
-            match self.find_split(refs, &extent, depth, &mut work.scratch) {
-                Split::Leaf => {
-                    work.nodes[at] = BvhNode::leaf(extent.bounds, prim_offset, n as u32);
-                    return;
-                }
-                Split::Median => {
-                    let mid = n / 2;
-                    (mid, Extent::of(&refs[..mid]), Extent::of(&refs[mid..]))
-                }
-                Split::Binned {
-                    axis,
-                    bin,
-                    bins,
-                    scale,
-                    min,
-                    left,
-                    right,
-                } => {
-                    // Binning along one axis records each primitive's bin (a pair's
-                    // split is made without binning).
-                    let mid = if self.params.longest_axis_only && n > 2 {
-                        partition_by_bins(refs, &work.scratch.prim_bins[..n], axis, bin)
-                    } else {
-                        let scale = axis_scale(scale, axis);
-                        partition(refs, |c| bin_on_axis(c, scale, min, bins) < bin)
-                    };
-                    (mid, left, right)
-                }
-            };
-        let (left, right) = refs.split_at_mut(mid);
-        let right_offset = prim_offset + mid as u32;
-        // The two children's slots, with their boxes; what they hold is filled in below.
-        let pair = work.nodes.len();
-        work.nodes[at] = BvhNode::interior(extent.bounds, pair as u32);
-        work.nodes
-            .push(BvhNode::leaf(left_extent.bounds, prim_offset, 0));
-        work.nodes
-            .push(BvhNode::leaf(right_extent.bounds, right_offset, 0));
-        if n >= self.params.parallel_threshold {
-            let (ln, rn) = rayon::join(
-                || self.build_subtree(left, prim_offset, left_extent, depth + 1),
-                || self.build_subtree(right, right_offset, right_extent, depth + 1),
-            );
-            work.attached.push((pair, ln));
-            work.attached.push((pair + 1, rn));
-        } else {
-            self.build_node(left, prim_offset, left_extent, depth + 1, work, pair);
-            self.build_node(right, right_offset, right_extent, depth + 1, work, pair + 1);
+    /// True when lanes may be clusters of one-slot lanes.
+    fn clusters(&self) -> bool {
+        self.params.lane_cluster > 1
+    }
+
+    /// True when `node` becomes a wide node of its own unless opened into its parent:
+    /// a split node, or a cluster.
+    fn makes_node(&self, node: &Node) -> bool {
+        match node.split {
+            NodeSplit::Binned { .. } | NodeSplit::Cells(_) => true,
+            NodeSplit::Leaf => self.clusters() && node.count > 1,
+            NodeSplit::Slot => false,
         }
+    }
+
+    /// The lanes that opening `node` makes: its two children, or a cluster's slots.
+    fn opened_lanes(node: &Node) -> usize {
+        match node.split {
+            NodeSplit::Binned { .. } | NodeSplit::Cells(_) => 2,
+            NodeSplit::Leaf => node.count as usize,
+            NodeSplit::Slot => 0,
+        }
+    }
+
+    /// The area of `node` and the lanes opening it adds, or `None` when it cannot be
+    /// opened (a leaf, or a slot).
+    fn opening(&self, node: &Node) -> Option<(f32, usize)> {
+        self.makes_node(node)
+            .then(|| (node.bounds.surface_area(), Self::opened_lanes(node) - 1))
+    }
+
+    /// Evaluates the lanes `node` opens into (its two children, or a cluster's slots),
+    /// pushes them on `scratch.lanes` and writes their places there into `out`, which
+    /// has room for [`opened_lanes`](Self::opened_lanes). `refs` holds the node's
+    /// primitives.
+    fn open(
+        &self,
+        node: &Node,
+        refs: &mut [PrimRef],
+        cell_tree: &[CellSplit],
+        scratch: &mut Scratch,
+        out: &mut [u32],
+    ) {
+        match node.split {
+            NodeSplit::Binned { .. } | NodeSplit::Cells(_) => {
+                let (left_count, [left, right], cell_nodes) = match node.split {
+                    NodeSplit::Cells(index) => {
+                        let cells = &cell_tree[index as usize];
+                        (cells.left_count, [cells.left, cells.right], cells.children)
+                    }
+                    NodeSplit::Binned {
+                        left_count,
+                        children,
+                    } => (left_count, scratch.children[children as usize], [None; 2]),
+                    _ => unreachable!("only split nodes open into two"),
+                };
+                let (left_refs, right_refs) = refs.split_at_mut(left_count as usize);
+                let depth = node.depth + 1;
+                let right_first = node.first + left_count;
+                let evaluated = if node.count as usize >= self.params.parallel_threshold {
+                    // Both halves at once, as a binary build splits its subtrees: the
+                    // top wide node alone evaluates about three levels of the tree.
+                    let mut own = Scratch::new();
+                    let (left_node, mut right_node) = rayon::join(
+                        || {
+                            self.evaluate(
+                                left_refs,
+                                node.first,
+                                left,
+                                depth,
+                                cell_nodes[0],
+                                scratch,
+                            )
+                        },
+                        || {
+                            self.evaluate(
+                                right_refs,
+                                right_first,
+                                right,
+                                depth,
+                                cell_nodes[1],
+                                &mut own,
+                            )
+                        },
+                    );
+                    if let NodeSplit::Binned {
+                        left_count,
+                        children,
+                    } = right_node.split
+                    {
+                        scratch.children.push(own.children[children as usize]);
+                        right_node.split = NodeSplit::Binned {
+                            left_count,
+                            children: scratch.children.len() as u32 - 1,
+                        };
+                    }
+                    [left_node, right_node]
+                } else {
+                    [
+                        self.evaluate(left_refs, node.first, left, depth, cell_nodes[0], scratch),
+                        self.evaluate(
+                            right_refs,
+                            right_first,
+                            right,
+                            depth,
+                            cell_nodes[1],
+                            scratch,
+                        ),
+                    ]
+                };
+                for (child, place) in evaluated.into_iter().zip(out) {
+                    *place = scratch.lanes.len() as u32;
+                    scratch.lanes.push(child);
+                }
+            }
+            NodeSplit::Leaf => {
+                for ((offset, r), place) in refs.iter().enumerate().zip(out) {
+                    *place = scratch.lanes.len() as u32;
+                    scratch.lanes.push(Node {
+                        bounds: r.bounds(),
+                        first: node.first + offset as u32,
+                        count: 1,
+                        depth: node.depth + 1,
+                        split: NodeSplit::Slot,
+                    });
+                }
+            }
+            NodeSplit::Slot => {}
+        }
+    }
+
+    /// The lanes of the wide node made from `node` (a split node or a cluster, over
+    /// `refs`), as places in `scratch.lanes`: its children, then, while lanes are left,
+    /// the widest child that can be opened is replaced by its own children, in order
+    /// (so the lanes stay in slot order). This makes the tree that collapsing the
+    /// binary tree top-down would make, without building the binary tree.
+    fn lanes(
+        &self,
+        node: &Node,
+        refs: &mut [PrimRef],
+        cell_tree: &[CellSplit],
+        scratch: &mut Scratch,
+    ) -> ([u32; WIDTH], usize) {
+        let mut lanes = [0u32; WIDTH];
+        let mut openings = [None; WIDTH];
+        let mut len = Self::opened_lanes(node);
+        self.open(node, refs, cell_tree, scratch, &mut lanes[..len]);
+        for position in 0..len {
+            openings[position] = self.opening(&scratch.lanes[lanes[position] as usize]);
+        }
+        while len < WIDTH {
+            let mut widest: Option<(usize, f32)> = None;
+            for (position, opening) in openings[..len].iter().enumerate() {
+                if let Some((area, added)) = *opening
+                    && len + added <= WIDTH
+                    && widest.is_none_or(|(_, best)| area > best)
+                {
+                    widest = Some((position, area));
+                }
+            }
+            let Some((position, _)) = widest else {
+                break;
+            };
+            let opened = scratch.lanes[lanes[position] as usize];
+            let start = (opened.first - node.first) as usize;
+            let opened_refs = &mut refs[start..start + opened.count as usize];
+            let count = Self::opened_lanes(&opened);
+            // The opened node's lanes take its place, in order.
+            lanes.copy_within(position + 1..len, position + count);
+            openings.copy_within(position + 1..len, position + count);
+            let places = &mut lanes[position..position + count];
+            self.open(&opened, opened_refs, cell_tree, scratch, places);
+            for offset in position..position + count {
+                openings[offset] = self.opening(&scratch.lanes[lanes[offset] as usize]);
+            }
+            len += count - 1;
+        }
+        (lanes, len)
+    }
+
+    /// Appends the wide subtree of `node` (evaluated, over `refs`) to `piece`, its
+    /// root first, and returns the root's index in the piece. A node that makes no
+    /// wide node of its own (only the root can be one) becomes a root of one lane.
+    /// Children of at least `parallel_threshold` primitives are built on the rayon
+    /// pool as pieces of their own, attached to this one.
+    fn emit(
+        &self,
+        node: Node,
+        refs: &mut [PrimRef],
+        cell_tree: &[CellSplit],
+        scratch: &mut Scratch,
+        piece: &mut Piece,
+    ) -> u32 {
+        let at = piece.nodes.len();
+        piece.nodes.push(WideNode::empty());
+        let (base, children_base) = (scratch.lanes.len(), scratch.children.len());
+        let (lanes, len) = if self.makes_node(&node) {
+            self.lanes(&node, refs, cell_tree, scratch)
+        } else {
+            scratch.lanes.push(node);
+            ([base as u32; WIDTH], 1)
+        };
+        let mut wide = WideNode::empty();
+        let big = |lane: &Node| lane.count as usize >= self.params.parallel_threshold;
+        let parallel = lanes[..len].iter().any(|&place| {
+            let lane = &scratch.lanes[place as usize];
+            self.makes_node(lane) && big(lane)
+        });
+        let mut rest = refs;
+        if !parallel {
+            for (position, &place) in lanes[..len].iter().enumerate() {
+                let lane = scratch.lanes[place as usize];
+                let (lane_refs, tail) = rest.split_at_mut(lane.count as usize);
+                rest = tail;
+                wide.set_box(position, lane.bounds);
+                if self.makes_node(&lane) {
+                    wide.children[position] = self.emit(lane, lane_refs, cell_tree, scratch, piece);
+                } else {
+                    wide.children[position] = lane.first;
+                    wide.counts[position] = lane.count;
+                }
+            }
+        } else {
+            let mut serial = Vec::with_capacity(len);
+            let mut parallel = Vec::with_capacity(len);
+            for (position, &place) in lanes[..len].iter().enumerate() {
+                let lane = scratch.lanes[place as usize];
+                let (lane_refs, tail) = rest.split_at_mut(lane.count as usize);
+                rest = tail;
+                wide.set_box(position, lane.bounds);
+                if !self.makes_node(&lane) {
+                    wide.children[position] = lane.first;
+                    wide.counts[position] = lane.count;
+                } else if big(&lane) {
+                    // Its own task has scratch of its own: the children's extents go along.
+                    let children = match lane.split {
+                        NodeSplit::Binned { children, .. } => {
+                            Some(scratch.children[children as usize])
+                        }
+                        _ => None,
+                    };
+                    parallel.push((position, lane, children, lane_refs));
+                } else {
+                    serial.push((position, lane, lane_refs));
+                }
+            }
+            let (pieces, ()) = rayon::join(
+                || {
+                    parallel
+                        .into_par_iter()
+                        .map(|(position, mut lane, children, lane_refs)| {
+                            let mut own = Piece {
+                                nodes: Vec::with_capacity(lane.count as usize / 4 + 1),
+                                attached: Vec::new(),
+                            };
+                            let mut own_scratch = Scratch::new();
+                            if let (Some(extents), NodeSplit::Binned { left_count, .. }) =
+                                (children, lane.split)
+                            {
+                                own_scratch.children.push(extents);
+                                lane.split = NodeSplit::Binned {
+                                    left_count,
+                                    children: 0,
+                                };
+                            }
+                            self.emit(lane, lane_refs, cell_tree, &mut own_scratch, &mut own);
+                            (position, own)
+                        })
+                        .collect::<Vec<_>>()
+                },
+                || {
+                    for (position, lane, lane_refs) in serial {
+                        wide.children[position] =
+                            self.emit(lane, lane_refs, cell_tree, scratch, piece);
+                    }
+                },
+            );
+            for (position, own) in pieces {
+                piece.attached.push((at, position, own));
+            }
+        }
+        piece.nodes[at] = wide;
+        scratch.lanes.truncate(base);
+        scratch.children.truncate(children_base);
+        at as u32
     }
 
     /// The cost of testing `count` primitives, in blocks of `leaf_block`.
@@ -721,19 +1018,25 @@ impl Builder {
 }
 
 /// Moves every leaf's slots to start at a multiple of `block`, leaves in slot order,
-/// filling the gaps with [`PADDING`](super::PADDING); rewrites the leaves' first slots in
-/// `nodes` and returns the new slot order.
-fn align_leaves(nodes: &mut [BvhNode], prim_indices: &[u32], block: usize) -> Vec<u32> {
-    let mut leaves: Vec<usize> = (0..nodes.len()).filter(|&i| nodes[i].is_leaf()).collect();
-    leaves.sort_unstable_by_key(|&i| nodes[i].first());
-    let padded: usize = leaves
-        .iter()
-        .map(|&i| (nodes[i].count() as usize).next_multiple_of(block))
-        .sum();
-    let mut aligned = Vec::with_capacity(padded);
-    for i in leaves {
-        let (first, count) = (nodes[i].first() as usize, nodes[i].count() as usize);
-        nodes[i] = nodes[i].with_first(aligned.len() as u32);
+/// filling the gaps with [`PADDING`](super::PADDING); rewrites the leaf lanes' first
+/// slots in `wide` and returns the new slot order. The lanes of a node are in slot order
+/// and a subtree's slots are contiguous, so a depth-first walk meets the leaves in slot
+/// order (a sort of them was a fiftieth of a bottom-level build).
+fn align_leaves(wide: &mut [WideNode], prim_indices: &[u32], block: usize) -> Vec<u32> {
+    let mut aligned = Vec::with_capacity(prim_indices.len() + prim_indices.len() / 2);
+    let mut stack = vec![(0usize, 0usize)];
+    while let Some((index, lane)) = stack.pop() {
+        if lane == WIDTH || !wide[index].is_used(lane) {
+            continue;
+        }
+        stack.push((index, lane + 1));
+        let node = &mut wide[index];
+        let (first, count) = (node.children[lane] as usize, node.counts[lane] as usize);
+        if count == 0 {
+            stack.push((first, 0));
+            continue;
+        }
+        node.children[lane] = aligned.len() as u32;
         aligned.extend_from_slice(&prim_indices[first..first + count]);
         aligned.resize(aligned.len().next_multiple_of(block), super::PADDING);
     }
@@ -884,176 +1187,148 @@ fn partition_by_bins(
     k
 }
 
-/// A grid cell's primitives: a contiguous range after [`sort_into_cells`].
+/// A grid cell's primitives: their extent, their number, and the cell's index in the
+/// grid.
 #[derive(Clone, Copy)]
 struct Cell {
     extent: Extent,
-    start: u32,
     count: u32,
+    grid: u32,
 }
 
-/// Sorts `refs` into `out` by the cell of a grid over `centroids` whose cells hold
-/// `cell_size` primitives on average (cubes, as many along each axis as its extent
-/// takes), keeping their order within a cell; returns the non-empty cells in order, or
-/// nothing (and `out` untouched) when the grid would have one cell.
-fn sort_into_cells(
-    refs: &[PrimRef],
-    out: &mut Vec<PrimRef>,
-    centroids: &Aabb,
-    cell_size: usize,
-) -> Vec<Cell> {
-    let extent = centroids.extent();
-    // Cells of fewer than 64 would cost more pieces and bookkeeping than they save.
-    let wanted = (refs.len() / cell_size.max(64)).max(1);
-    let cells_along = |side: f32| -> [usize; 3] {
-        [0, 1, 2].map(|axis| {
-            let cells = (extent[axis] / side).ceil();
-            // NaN (side or extent not finite) and 0 both make one cell.
-            if cells >= 1.0 {
-                (cells as usize).min(1 << 10)
-            } else {
-                1
-            }
-        })
-    };
-    let mut side = extent.max_element();
-    let mut dims = cells_along(side);
-    while dims.iter().product::<usize>() < wanted && side > 0.0 && side.is_finite() {
-        side *= 0.95;
-        dims = cells_along(side);
-    }
-    let count = dims.iter().product::<usize>();
-    if count == 1 {
-        return Vec::new();
-    }
-    let scale = Vec3A::new(dims[0] as f32, dims[1] as f32, dims[2] as f32)
-        / Vec3A::select(extent.cmpgt(Vec3A::ZERO), extent, Vec3A::ONE);
-    let cell_of = |r: &PrimRef| -> u32 {
-        let k = ((r.centroid() - centroids.min) * scale).max(Vec3A::ZERO);
-        // Saturating casts: a NaN lands in cell 0, a rounding past the end in the last.
-        let [i, j, l] = [0, 1, 2].map(|axis| (k[axis] as usize).min(dims[axis] - 1));
-        ((i * dims[1] + j) * dims[2] + l) as u32
-    };
-    // A counting sort in fixed chunks (the same order on any thread count): each
-    // chunk's histogram, then every (cell, chunk) pair's place in `out`, cell-major,
-    // then each chunk moves its primitives into its places, all chunks at once.
-    // At most 16 chunks, so the pieces below number at most 16 per cell.
-    let chunk_size = refs.len().div_ceil(16).max(1 << 12);
-    let cells_and_counts: Vec<(Vec<u32>, Vec<u32>)> = refs
-        .par_chunks(chunk_size)
-        .map(|chunk| {
-            let cells: Vec<u32> = chunk.iter().map(cell_of).collect();
-            let mut counts = vec![0u32; count];
-            for &cell in &cells {
-                counts[cell as usize] += 1;
-            }
-            (cells, counts)
-        })
-        .collect();
-    let mut starts = vec![0u32; count + 1];
-    for (_, counts) in &cells_and_counts {
-        for (cell, &n) in counts.iter().enumerate() {
-            starts[cell + 1] += n;
-        }
-    }
-    for cell in 0..count {
-        starts[cell + 1] += starts[cell];
-    }
-    out.clear();
-    out.resize(refs.len(), refs[0]);
-    // Cut `out` into one piece per cell and chunk, handed to the chunks.
-    let mut places: Vec<Vec<&mut [PrimRef]>> = (0..cells_and_counts.len())
-        .map(|_| Vec::with_capacity(count))
-        .collect();
-    let mut rest = out.as_mut_slice();
-    for cell in 0..count {
-        for (chunk, (_, counts)) in cells_and_counts.iter().enumerate() {
-            let (piece, tail) = rest.split_at_mut(counts[cell] as usize);
-            places[chunk].push(piece);
-            rest = tail;
-        }
-    }
-    refs.par_chunks(chunk_size)
-        .zip(places.par_iter_mut())
-        .zip(cells_and_counts.par_iter())
-        .for_each(|((chunk, pieces), (cells, _))| {
-            let mut filled = vec![0usize; count];
-            for (r, &cell) in chunk.iter().zip(cells) {
-                let cell = cell as usize;
-                pieces[cell][filled[cell]] = *r;
-                filled[cell] += 1;
-            }
-        });
-    let ranges: Vec<(u32, u32)> = starts
-        .windows(2)
-        .filter(|w| w[1] > w[0])
-        .map(|w| (w[0], w[1] - w[0]))
-        .collect();
-    ranges
-        .par_iter()
-        .map(|&(start, count)| Cell {
-            extent: Extent::of(&out[start as usize..(start + count) as usize]),
-            start,
-            count,
-        })
-        .collect()
+/// A split of the cells' tree: the first `left_count` slots of the node (whole cells)
+/// go left; the children's extents; which children are splits of this tree too (their
+/// index), `None` marking a single cell, whose primitives the SAH splits as usual.
+#[derive(Clone, Copy)]
+struct CellSplit {
+    left_count: u32,
+    left: Extent,
+    right: Extent,
+    children: [Option<u32>; 2],
 }
 
 impl Builder {
-    /// The tree over primitives sorted into `cells`: the top levels split between whole
-    /// cells ([`split_cells`](Self::split_cells)), and each cell's subtree is built over
-    /// its primitives as usual, in parallel.
-    fn build_over_cells(
+    /// Sorts `refs` into `out` by the cell of a grid over `centroids` whose cells hold
+    /// `grid_cell` primitives on average (cubes, as many along each axis as its extent
+    /// takes), the cells in the order of the tree [`split_cells`](Self::split_cells)
+    /// makes over them and the primitives of a cell in their order in `refs`; returns
+    /// that tree, its root first, or nothing (and `out` untouched) when the primitives
+    /// fill fewer than two cells.
+    fn sort_into_cells(
         &self,
-        refs: &mut [PrimRef],
-        mut cells: Vec<Cell>,
-        extent: Extent,
-    ) -> Subtree {
-        let mut nodes = vec![BvhNode::leaf(extent.bounds, 0, 0)];
-        let mut roots = Vec::with_capacity(cells.len());
-        self.split_cells(&mut cells, 0, &mut nodes, &mut roots, 0);
-        // Each cell's primitives, cut off `refs` in order.
-        roots.sort_unstable_by_key(|root: &CellRoot| root.cell.start);
-        let mut pieces = Vec::with_capacity(roots.len());
-        let mut rest = refs;
-        for root in &roots {
-            let (piece, tail) = rest.split_at_mut(root.cell.count as usize);
-            pieces.push((root, piece));
-            rest = tail;
+        refs: &[PrimRef],
+        out: &mut Vec<PrimRef>,
+        centroids: &Aabb,
+    ) -> Vec<CellSplit> {
+        let extent = centroids.extent();
+        // Cells of fewer than 64 would cost more pieces and bookkeeping than they save.
+        let wanted = (refs.len() / self.params.grid_cell.max(64)).max(1);
+        let cells_along = |side: f32| -> [usize; 3] {
+            [0, 1, 2].map(|axis| {
+                let cells = (extent[axis] / side).ceil();
+                // NaN (side or extent not finite) and 0 both make one cell.
+                if cells >= 1.0 {
+                    (cells as usize).min(1 << 10)
+                } else {
+                    1
+                }
+            })
+        };
+        let mut side = extent.max_element();
+        let mut dims = cells_along(side);
+        while dims.iter().product::<usize>() < wanted && side > 0.0 && side.is_finite() {
+            side *= 0.95;
+            dims = cells_along(side);
         }
-        let attached = pieces
-            .into_par_iter()
-            .map(|(root, piece)| {
-                let subtree =
-                    self.build_subtree(piece, root.cell.start, root.cell.extent, root.depth);
-                (root.placeholder, subtree)
+        let count = dims.iter().product::<usize>();
+        if count == 1 {
+            return Vec::new();
+        }
+        let scale = Vec3A::new(dims[0] as f32, dims[1] as f32, dims[2] as f32)
+            / Vec3A::select(extent.cmpgt(Vec3A::ZERO), extent, Vec3A::ONE);
+        let cell_of = |r: &PrimRef| -> u32 {
+            let k = ((r.centroid() - centroids.min) * scale).max(Vec3A::ZERO);
+            // Saturating casts: a NaN lands in cell 0, a rounding past the end in the last.
+            let [i, j, l] = [0, 1, 2].map(|axis| (k[axis] as usize).min(dims[axis] - 1));
+            ((i * dims[1] + j) * dims[2] + l) as u32
+        };
+        // A counting sort in fixed chunks (the same order on any thread count): each
+        // chunk's histogram and cell extents, the cells' tree over their totals, every
+        // (cell, chunk) pair's place in `out` in the tree's cell order, then each chunk
+        // moves its primitives into its places, all chunks at once. At most 16
+        // chunks, so the pieces below number at most 16 per cell.
+        let chunk_size = refs.len().div_ceil(16).max(1 << 12);
+        let chunks: Vec<(Vec<u32>, Vec<u32>, Vec<Extent>)> = refs
+            .par_chunks(chunk_size)
+            .map(|chunk| {
+                let cells: Vec<u32> = chunk.iter().map(cell_of).collect();
+                let mut counts = vec![0u32; count];
+                let mut extents = vec![Extent::EMPTY; count];
+                for (r, &cell) in chunk.iter().zip(&cells) {
+                    counts[cell as usize] += 1;
+                    extents[cell as usize] = extents[cell as usize].with(r);
+                }
+                (cells, counts, extents)
             })
             .collect();
-        Subtree {
-            nodes,
-            scratch: Scratch::new(),
-            attached,
+        let mut cells: Vec<Cell> = (0..count)
+            .filter_map(|grid| {
+                let count: u32 = chunks.iter().map(|(_, counts, _)| counts[grid]).sum();
+                (count > 0).then(|| Cell {
+                    extent: chunks
+                        .iter()
+                        .fold(Extent::EMPTY, |e, (_, _, extents)| e.union(extents[grid])),
+                    count,
+                    grid: grid as u32,
+                })
+            })
+            .collect();
+        if cells.len() < 2 {
+            return Vec::new();
         }
+        let mut tree = Vec::with_capacity(cells.len());
+        self.split_cells(&mut cells, &mut tree, 0);
+        out.clear();
+        out.resize(refs.len(), refs[0]);
+        // Cut `out` into one piece per cell and chunk, handed to the chunks.
+        let mut places: Vec<Vec<&mut [PrimRef]>> = (0..chunks.len())
+            .map(|_| (0..count).map(|_| Default::default()).collect())
+            .collect();
+        let mut rest = out.as_mut_slice();
+        for cell in &cells {
+            for (chunk, (_, counts, _)) in chunks.iter().enumerate() {
+                let grid = cell.grid as usize;
+                let (piece, tail) = rest.split_at_mut(counts[grid] as usize);
+                places[chunk][grid] = piece;
+                rest = tail;
+            }
+        }
+        refs.par_chunks(chunk_size)
+            .zip(places.par_iter_mut())
+            .zip(chunks.par_iter())
+            .for_each(|((chunk, pieces), (cells, _, _))| {
+                let mut filled = vec![0usize; count];
+                for (r, &cell) in chunk.iter().zip(cells) {
+                    let cell = cell as usize;
+                    pieces[cell][filled[cell]] = *r;
+                    filled[cell] += 1;
+                }
+            });
+        tree
     }
 
-    /// Splits `cells` under node `at` by the SAH over their boxes (binned by their
-    /// centroid boxes' centres, costs weighted by primitive counts) down to single
-    /// cells, whose placeholders go to `roots`.
+    /// Splits `cells` by the SAH over their boxes (binned by their centroid boxes'
+    /// centres, costs weighted by primitive counts) down to single cells, pushing the
+    /// splits on `tree` (parents first) and leaving `cells` in the tree's order; returns
+    /// the index of the split made, or `None` for a single cell.
     fn split_cells(
         &self,
         cells: &mut [Cell],
-        at: usize,
-        nodes: &mut Vec<BvhNode>,
-        roots: &mut Vec<CellRoot>,
+        tree: &mut Vec<CellSplit>,
         depth: usize,
-    ) {
-        if let [cell] = cells {
-            roots.push(CellRoot {
-                cell: *cell,
-                placeholder: at,
-                depth,
-            });
-            return;
+    ) -> Option<u32> {
+        if cells.len() < 2 {
+            return None;
         }
         const BINS: usize = 16;
         let centre = |cell: &Cell| cell.extent.centroids.center();
@@ -1115,25 +1390,25 @@ impl Builder {
             }
         };
         let (left, right) = cells.split_at_mut(mid);
-        let bounds = |cells: &[Cell]| {
+        let extent = |cells: &[Cell]| {
             cells
                 .iter()
-                .fold(Aabb::EMPTY, |b, cell| b.union(cell.extent.bounds))
+                .fold(Extent::EMPTY, |e, cell| e.union(cell.extent))
         };
-        let pair = nodes.len();
-        nodes[at] = BvhNode::interior(nodes[at].bounds(), pair as u32);
-        nodes.push(BvhNode::leaf(bounds(left), 0, 0));
-        nodes.push(BvhNode::leaf(bounds(right), 0, 0));
-        self.split_cells(left, pair, nodes, roots, depth + 1);
-        self.split_cells(right, pair + 1, nodes, roots, depth + 1);
+        let at = tree.len();
+        tree.push(CellSplit {
+            left_count: left.iter().map(|cell| cell.count).sum(),
+            left: extent(left),
+            right: extent(right),
+            children: [None; 2],
+        });
+        let children = [
+            self.split_cells(left, tree, depth + 1),
+            self.split_cells(right, tree, depth + 1),
+        ];
+        tree[at].children = children;
+        Some(at as u32)
     }
-}
-
-/// A grid cell at the bottom of the cells' tree: the node it replaces, and its depth.
-struct CellRoot {
-    cell: Cell,
-    placeholder: usize,
-    depth: usize,
 }
 
 #[cfg(test)]

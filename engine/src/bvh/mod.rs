@@ -1,4 +1,4 @@
-//! Bounding volume hierarchies: one binary BVH type serves both levels, over triangles
+//! Bounding volume hierarchies: one 8-wide BVH type serves both levels, over triangles
 //! (the per-species BLAS) and over instances (the TLAS). It knows nothing of what its
 //! primitives are: building takes their boxes, traversal takes a closure that tests a
 //! primitive slot (obvhs-style `ray_traverse` / `ray_traverse_anyhit`).
@@ -6,7 +6,6 @@
 use crate::fingerprint::Fingerprint;
 
 mod build;
-mod node;
 mod refit;
 pub mod simd;
 mod traverse;
@@ -14,7 +13,6 @@ mod validate;
 mod wide;
 
 pub use build::{BuildParams, BuildScratch, GRID_FROM};
-pub use node::BvhNode;
 pub use refit::RefitError;
 pub use traverse::{LeafVisit, NodeRay, TraversalStats};
 pub use validate::BvhReport;
@@ -26,32 +24,31 @@ pub const PADDING: u32 = u32::MAX;
 /// Traversal stack capacity; [`build`](Bvh::build) bounds the depth below it.
 pub const MAX_DEPTH: usize = 96;
 
-/// A binary BVH: nodes with every parent before its children (root at 0) and the
-/// primitive order its leaves refer to.
+/// A BVH of [`WIDTH`] children per node, built top-down by binned SAH splits: nodes
+/// with every parent before its children (root at 0) and the primitive order its leaves
+/// refer to.
 #[derive(Clone, Debug, Default)]
 pub struct Bvh {
-    /// Binary nodes as built; empty when the BVH holds no primitive.
-    pub nodes: Vec<BvhNode>,
-    /// The same tree collapsed to [`WIDTH`] children per node: what traversal walks.
+    /// The nodes traversal walks; empty when the BVH holds no primitive.
     pub wide: Vec<WideNode>,
     /// `prim_indices[slot]` is the caller's index of the primitive in leaf slot `slot`,
     /// or [`PADDING`] after a leaf's primitives when leaves are aligned to blocks
     /// ([`BuildParams::leaf_block`]). Primitives with empty or non-finite boxes are left
     /// out.
     pub prim_indices: Vec<u32>,
+    /// The box around every primitive, exact (the nodes' lanes are grown a little).
+    root_bounds: crate::math::Aabb,
 }
 
 impl Bvh {
     /// True when there is nothing to hit.
     pub fn is_empty(&self) -> bool {
-        self.nodes.is_empty()
+        self.wide.is_empty()
     }
 
     /// Bytes of heap memory held.
     pub fn memory_bytes(&self) -> usize {
-        self.nodes.capacity() * std::mem::size_of::<BvhNode>()
-            + self.wide.capacity() * std::mem::size_of::<WideNode>()
-            + self.prim_indices.capacity() * 4
+        self.wide.capacity() * std::mem::size_of::<WideNode>() + self.prim_indices.capacity() * 4
     }
 
     /// A hash of the tree traversal walks (every wide node's boxes and children, and
@@ -88,7 +85,7 @@ impl Bvh {
 
     /// The box around everything (empty box when empty).
     pub fn bounds(&self) -> crate::math::Aabb {
-        self.nodes.first().map(|n| n.bounds()).unwrap_or_default()
+        self.root_bounds
     }
 }
 

@@ -1,5 +1,5 @@
-//! Refitting: the same tree over moved primitives. Every box is recomputed bottom-up, in
-//! the binary nodes and in the wide nodes traversal walks; topology and slot order stay.
+//! Refitting: the same tree over moved primitives. Every box is recomputed bottom-up;
+//! topology and slot order stay.
 //! A refit costs a linear pass instead of a SAH build, but the tree's quality decays as
 //! primitives move away from where it was built: [`Bvh::sah_cost`] measures by how much,
 //! so the caller can rebuild once it has degraded.
@@ -50,26 +50,10 @@ impl Bvh {
                 .iter()
                 .fold(Aabb::EMPTY, |acc, b| acc.union(*b))
         };
-        // Children come after their parent in both arrays, so a reverse pass sees every
-        // child before its parent.
-        for index in (0..self.nodes.len()).rev() {
-            let node = self.nodes[index];
-            self.nodes[index] = if node.is_leaf() {
-                super::BvhNode::leaf(
-                    union_of_slots(node.first(), node.count()),
-                    node.first(),
-                    node.count(),
-                )
-            } else {
-                let left = node.first() as usize;
-                let bounds = self.nodes[left]
-                    .bounds()
-                    .union(self.nodes[left + 1].bounds());
-                super::BvhNode::interior(bounds, node.first())
-            };
-        }
-        // Wide lanes store boxes grown by a few ulps; parents are refitted from the exact
-        // unions kept here, so the growth is applied once and does not compound with depth.
+        // Children come after their parent, so a reverse pass sees every child before
+        // its parent. Lanes store boxes grown by a few ulps; parents are refitted from
+        // the exact unions kept here, so the growth is applied once and does not compound
+        // with depth.
         let mut exact = vec![Aabb::EMPTY; self.wide.len()];
         for index in (0..self.wide.len()).rev() {
             let mut node = self.wide[index];
@@ -89,19 +73,30 @@ impl Bvh {
             self.wide[index] = node;
             exact[index] = whole;
         }
+        self.root_bounds = exact.first().copied().unwrap_or(Aabb::EMPTY);
         Ok(())
     }
 
-    /// Surface-area-heuristic cost of the binary tree, not normalised: the sum over nodes
-    /// of box area × (1 for a node visit, or the primitive count of a leaf), which is the
-    /// expected work of a ray hitting the root times the root's area. Translation leaves
-    /// it unchanged; after a refit, its ratio to the cost when built measures the
-    /// degradation. (Normalising by the root's area would hide a primitive moved far
-    /// away: the grown root makes every node look relatively smaller.) 0 when empty.
+    /// Surface-area-heuristic cost of the tree, not normalised: the root's area (its
+    /// visit) plus, over every lane, its box's area × (1 for a node visit, or the
+    /// primitive count of a leaf), which is the expected work of a ray hitting the root
+    /// times the root's area. Translation leaves it unchanged; after a refit, its ratio
+    /// to the cost when built measures the degradation. (Normalising by the root's area
+    /// would hide a primitive moved far away: the grown root makes every node look
+    /// relatively smaller.) 0 when empty.
     pub fn sah_cost(&self) -> f64 {
-        super::chunked_sum(&self.nodes, |node| {
-            let weight = if node.is_leaf() { node.count() } else { 1 };
-            node.bounds().surface_area() as f64 * weight as f64
-        })
+        if self.wide.is_empty() {
+            return 0.0;
+        }
+        let lanes = super::chunked_sum(&self.wide, |node| {
+            (0..super::wide::WIDTH)
+                .filter(|&lane| node.is_used(lane))
+                .map(|lane| {
+                    let weight = node.counts[lane].max(1);
+                    node.child_bounds(lane).surface_area() as f64 * weight as f64
+                })
+                .sum()
+        });
+        self.root_bounds.surface_area() as f64 + lanes
     }
 }

@@ -22,7 +22,7 @@ impl Bvh {
     /// Checks that the tree is well formed for `prim_bounds` (the boxes it was built from):
     /// children inside the array and after their parent, every node reached once, every
     /// leaf slot owned by exactly one leaf, every valid primitive referenced exactly once,
-    /// boxes nested, depth bounded — for the binary tree and for its wide collapse.
+    /// boxes nested, depth bounded.
     pub fn validate(&self, prim_bounds: &[Aabb]) -> Result<BvhReport, String> {
         let valid = |b: &Aabb| !b.is_empty() && b.min.is_finite() && b.max.is_finite();
         let mut expected: Vec<u32> = (0..prim_bounds.len() as u32)
@@ -43,79 +43,83 @@ impl Bvh {
                 expected.len()
             ));
         }
-        if self.nodes.is_empty() {
+        if self.wide.is_empty() {
             return if self.prim_indices.is_empty() {
                 Ok(BvhReport::default())
             } else {
                 Err("no nodes but primitives".into())
             };
         }
-        let root_area = self.nodes[0].bounds().surface_area().max(f32::MIN_POSITIVE);
+        let root_area = self.root_bounds.surface_area().max(f32::MIN_POSITIVE);
         let mut report = BvhReport {
-            nodes: self.nodes.len(),
+            nodes: self.wide.len(),
+            sah_cost: 1.0,
             ..Default::default()
         };
-        let mut seen_node = vec![false; self.nodes.len()];
+        let mut seen_node = vec![false; self.wide.len()];
         let mut seen_slot = vec![false; self.prim_indices.len()];
-        let mut stack = vec![(0usize, 0usize)];
-        while let Some((index, depth)) = stack.pop() {
+        let mut stack = vec![(0usize, None::<Aabb>, 0usize)];
+        while let Some((index, parent_box, depth)) = stack.pop() {
             if std::mem::replace(&mut seen_node[index], true) {
                 return Err(format!("node {index} reached twice"));
-            }
-            let node = &self.nodes[index];
-            let bounds = node.bounds();
-            if bounds.is_empty() || !bounds.min.is_finite() || !bounds.max.is_finite() {
-                return Err(format!("node {index} has an empty or non-finite box"));
             }
             if depth >= MAX_DEPTH {
                 return Err(format!(
                     "node {index} at depth {depth} exceeds the traversal stack"
                 ));
             }
-            let relative_area = bounds.surface_area() / root_area;
-            if node.is_leaf() {
-                let (first, count) = (node.first() as usize, node.count() as usize);
-                if first + count > self.prim_indices.len() {
-                    return Err(format!(
-                        "leaf {index} slots {first}..{} out of range",
-                        first + count
-                    ));
-                }
-                for slot in first..first + count {
-                    if std::mem::replace(&mut seen_slot[slot], true) {
-                        return Err(format!("slot {slot} owned by two leaves"));
-                    }
-                    if self.prim_indices[slot] == PADDING {
-                        return Err(format!("leaf {index} owns padding slot {slot}"));
-                    }
-                    let prim = &prim_bounds[self.prim_indices[slot] as usize];
-                    if !bounds.contains(prim) {
+            let node = &self.wide[index];
+            for lane in 0..super::wide::WIDTH {
+                if !node.is_used(lane) {
+                    if node.counts[lane] != 0 {
                         return Err(format!(
-                            "leaf {index} box does not contain primitive {}",
-                            self.prim_indices[slot]
+                            "node {index} lane {lane} is unused but has primitives"
                         ));
                     }
+                    continue;
                 }
-                report.leaves += 1;
-                report.max_depth = report.max_depth.max(depth);
-                report.max_leaf_size = report.max_leaf_size.max(count);
-                report.sah_cost += relative_area * count as f32;
-            } else {
-                let left = node.first() as usize;
-                if left <= index || left + 1 >= self.nodes.len() {
+                let b = node.child_bounds(lane);
+                if b.is_empty() || !b.min.is_finite() || !b.max.is_finite() {
                     return Err(format!(
-                        "interior node {index} has children at {left}, {} (of {})",
-                        left + 1,
-                        self.nodes.len()
+                        "node {index} lane {lane} has an empty or non-finite box"
                     ));
                 }
-                for child in [left, left + 1] {
-                    if !bounds.contains(&self.nodes[child].bounds()) {
-                        return Err(format!("node {index} box does not contain child {child}"));
-                    }
-                    stack.push((child, depth + 1));
+                if parent_box.is_some_and(|p| !p.contains(&b)) {
+                    return Err(format!(
+                        "node {index} lane {lane} sticks out of its parent's box"
+                    ));
                 }
-                report.sah_cost += relative_area;
+                let relative_area = b.surface_area() / root_area;
+                let (first, count) = (node.children[lane] as usize, node.counts[lane] as usize);
+                if count > 0 {
+                    if first + count > self.prim_indices.len() {
+                        return Err(format!("node {index} lane {lane} slots out of range"));
+                    }
+                    for slot in first..first + count {
+                        if std::mem::replace(&mut seen_slot[slot], true) {
+                            return Err(format!("slot {slot} owned by two leaves"));
+                        }
+                        if self.prim_indices[slot] == PADDING {
+                            return Err(format!("node {index} owns padding slot {slot}"));
+                        }
+                        if !b.contains(&prim_bounds[self.prim_indices[slot] as usize]) {
+                            return Err(format!(
+                                "node {index} lane {lane} does not contain primitive {}",
+                                self.prim_indices[slot]
+                            ));
+                        }
+                    }
+                    report.leaves += 1;
+                    report.max_depth = report.max_depth.max(depth + 1);
+                    report.max_leaf_size = report.max_leaf_size.max(count);
+                    report.sah_cost += relative_area * count as f32;
+                } else {
+                    if first <= index || first >= self.wide.len() {
+                        return Err(format!("node {index} lane {lane} points to node {first}"));
+                    }
+                    report.sah_cost += relative_area;
+                    stack.push((first, Some(b), depth + 1));
+                }
             }
         }
         if let Some(i) = seen_node.iter().position(|s| !s) {
@@ -124,83 +128,7 @@ impl Bvh {
         if let Some(s) = self.unowned_slot(&seen_slot) {
             return Err(format!("slot {s} belongs to no leaf"));
         }
-        self.validate_wide(prim_bounds)?;
         Ok(report)
-    }
-
-    /// The same checks on the wide tree that traversal walks.
-    fn validate_wide(&self, prim_bounds: &[Aabb]) -> Result<(), String> {
-        if self.wide.is_empty() {
-            return if self.nodes.is_empty() {
-                Ok(())
-            } else {
-                Err("binary nodes but no wide nodes".into())
-            };
-        }
-        let mut seen_node = vec![false; self.wide.len()];
-        let mut seen_slot = vec![false; self.prim_indices.len()];
-        let mut stack = vec![(0usize, None::<Aabb>)];
-        while let Some((index, parent_box)) = stack.pop() {
-            if std::mem::replace(&mut seen_node[index], true) {
-                return Err(format!("wide node {index} reached twice"));
-            }
-            let node = &self.wide[index];
-            for lane in 0..super::wide::WIDTH {
-                if !node.is_used(lane) {
-                    if node.counts[lane] != 0 {
-                        return Err(format!(
-                            "wide node {index} lane {lane} is unused but has primitives"
-                        ));
-                    }
-                    continue;
-                }
-                let b = node.child_bounds(lane);
-                if b.is_empty() || !b.min.is_finite() || !b.max.is_finite() {
-                    return Err(format!(
-                        "wide node {index} lane {lane} has an empty or non-finite box"
-                    ));
-                }
-                if parent_box.is_some_and(|p| !p.contains(&b)) {
-                    return Err(format!(
-                        "wide node {index} lane {lane} sticks out of its parent's box"
-                    ));
-                }
-                let (first, count) = (node.children[lane] as usize, node.counts[lane] as usize);
-                if count > 0 {
-                    if first + count > self.prim_indices.len() {
-                        return Err(format!("wide node {index} lane {lane} slots out of range"));
-                    }
-                    for slot in first..first + count {
-                        if std::mem::replace(&mut seen_slot[slot], true) {
-                            return Err(format!("slot {slot} owned by two wide leaves"));
-                        }
-                        if self.prim_indices[slot] == PADDING {
-                            return Err(format!("wide node {index} owns padding slot {slot}"));
-                        }
-                        if !b.contains(&prim_bounds[self.prim_indices[slot] as usize]) {
-                            return Err(format!(
-                                "wide node {index} lane {lane} does not contain primitive {}",
-                                self.prim_indices[slot]
-                            ));
-                        }
-                    }
-                } else {
-                    if first <= index || first >= self.wide.len() {
-                        return Err(format!(
-                            "wide node {index} lane {lane} points to node {first}"
-                        ));
-                    }
-                    stack.push((first, Some(b)));
-                }
-            }
-        }
-        if let Some(i) = seen_node.iter().position(|s| !s) {
-            return Err(format!("wide node {i} is unreachable"));
-        }
-        if let Some(s) = self.unowned_slot(&seen_slot) {
-            return Err(format!("slot {s} belongs to no wide leaf"));
-        }
-        Ok(())
     }
 
     /// The first slot that no leaf owned (`seen`) and that is not padding.
