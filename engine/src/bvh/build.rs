@@ -269,6 +269,28 @@ struct Scratch {
 }
 
 impl Scratch {
+    /// The children's extents of `node` when it is split by the SAH, to hand to another
+    /// scratch with [`adopt`](Self::adopt).
+    fn children_of(&self, node: &Node) -> Option<[Extent; 2]> {
+        match node.split {
+            NodeSplit::Binned { children, .. } => Some(self.children[children as usize]),
+            _ => None,
+        }
+    }
+
+    /// `node`, evaluated with another scratch, with `children` (its children's extents
+    /// there) pushed here.
+    fn adopt(&mut self, mut node: Node, children: Option<[Extent; 2]>) -> Node {
+        if let (Some(extents), NodeSplit::Binned { left_count, .. }) = (children, node.split) {
+            self.children.push(extents);
+            node.split = NodeSplit::Binned {
+                left_count,
+                children: self.children.len() as u32 - 1,
+            };
+        }
+        node
+    }
+
     fn new() -> Self {
         Self {
             bins: vec![EMPTY_BIN; 3 * MAX_BINS],
@@ -591,57 +613,27 @@ impl Builder {
                     _ => unreachable!("only split nodes open into two"),
                 };
                 let (left_refs, right_refs) = refs.split_at_mut(left_count as usize);
-                let depth = node.depth + 1;
                 let right_first = node.first + left_count;
+                let half =
+                    |refs: &mut [PrimRef], first, extent, cell_node, scratch: &mut Scratch| {
+                        self.evaluate(refs, first, extent, node.depth + 1, cell_node, scratch)
+                    };
                 let evaluated = if node.count as usize >= self.params.parallel_threshold {
                     // Both halves at once, as a binary build splits its subtrees: the
                     // top wide node alone evaluates about three levels of the tree.
                     let mut own = Scratch::new();
-                    let (left_node, mut right_node) = rayon::join(
-                        || {
-                            self.evaluate(
-                                left_refs,
-                                node.first,
-                                left,
-                                depth,
-                                cell_nodes[0],
-                                scratch,
-                            )
-                        },
-                        || {
-                            self.evaluate(
-                                right_refs,
-                                right_first,
-                                right,
-                                depth,
-                                cell_nodes[1],
-                                &mut own,
-                            )
-                        },
+                    let (left_node, right_node) = rayon::join(
+                        || half(left_refs, node.first, left, cell_nodes[0], scratch),
+                        || half(right_refs, right_first, right, cell_nodes[1], &mut own),
                     );
-                    if let NodeSplit::Binned {
-                        left_count,
-                        children,
-                    } = right_node.split
-                    {
-                        scratch.children.push(own.children[children as usize]);
-                        right_node.split = NodeSplit::Binned {
-                            left_count,
-                            children: scratch.children.len() as u32 - 1,
-                        };
-                    }
-                    [left_node, right_node]
+                    [
+                        left_node,
+                        scratch.adopt(right_node, own.children_of(&right_node)),
+                    ]
                 } else {
                     [
-                        self.evaluate(left_refs, node.first, left, depth, cell_nodes[0], scratch),
-                        self.evaluate(
-                            right_refs,
-                            right_first,
-                            right,
-                            depth,
-                            cell_nodes[1],
-                            scratch,
-                        ),
+                        half(left_refs, node.first, left, cell_nodes[0], scratch),
+                        half(right_refs, right_first, right, cell_nodes[1], scratch),
                     ]
                 };
                 for (child, place) in evaluated.into_iter().zip(out) {
@@ -769,13 +761,7 @@ impl Builder {
                     wide.counts[position] = lane.count;
                 } else if big(&lane) {
                     // Its own task has scratch of its own: the children's extents go along.
-                    let children = match lane.split {
-                        NodeSplit::Binned { children, .. } => {
-                            Some(scratch.children[children as usize])
-                        }
-                        _ => None,
-                    };
-                    parallel.push((position, lane, children, lane_refs));
+                    parallel.push((position, lane, scratch.children_of(&lane), lane_refs));
                 } else {
                     serial.push((position, lane, lane_refs));
                 }
@@ -784,21 +770,13 @@ impl Builder {
                 || {
                     parallel
                         .into_par_iter()
-                        .map(|(position, mut lane, children, lane_refs)| {
+                        .map(|(position, lane, children, lane_refs)| {
                             let mut own = Piece {
                                 nodes: Vec::with_capacity(lane.count as usize / 4 + 1),
                                 attached: Vec::new(),
                             };
                             let mut own_scratch = Scratch::new();
-                            if let (Some(extents), NodeSplit::Binned { left_count, .. }) =
-                                (children, lane.split)
-                            {
-                                own_scratch.children.push(extents);
-                                lane.split = NodeSplit::Binned {
-                                    left_count,
-                                    children: 0,
-                                };
-                            }
+                            let lane = own_scratch.adopt(lane, children);
                             self.emit(lane, lane_refs, cell_tree, &mut own_scratch, &mut own);
                             (position, own)
                         })
