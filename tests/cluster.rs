@@ -244,12 +244,18 @@ fn workers_render_the_next_frame_while_rank_0_is_between_frames_and_the_film_sta
 
 #[test]
 fn a_run_that_ends_while_workers_render_ahead_leaves_none_blocked_in_a_send() {
-    // Rank 0 says frames follow its last, then ends the run at once: its workers are
-    // on a frame that will not come, sending tiles that wait until rank 0 takes them.
+    // Rank 0 says frames follow its last, pauses after each frame (so the workers are
+    // surely on the next one: without the pause they sometimes were not yet, and the
+    // case went untested), then ends the run: its workers are on a frame that will not
+    // come, sending tiles that wait until rank 0 takes them.
     let ending = Leader {
         frames: 2,
         frames_follow: true,
-        after_frame: &|_, _| {},
+        after_frame: &|rank, _| {
+            if rank == 0 {
+                std::thread::sleep(Duration::from_millis(300));
+            }
+        },
     };
     let (done, finished) = std::sync::mpsc::channel();
     std::thread::spawn(move || {
