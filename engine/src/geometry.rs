@@ -108,21 +108,24 @@ impl Geometry {
         stats: &mut TraversalStats,
         accept: impl FnMut(u32, &TriangleHit) -> bool,
     ) -> Option<GeometryHit> {
-        with_node_kernel!(kernel => self.intersect_closest_with(kernel, ray, stats, accept))
+        with_node_kernel!(kernel => self.intersect_closest_with(kernel, ray, None, stats, accept))
     }
 
-    /// [`intersect_closest`](Self::intersect_closest) with the box tests of `kernel`.
+    /// [`intersect_closest`](Self::intersect_closest) with the box tests of `kernel`,
+    /// leaving out triangle `leaving` (as [`intersect_any_with`](Self::intersect_any_with)).
     #[inline(always)]
     pub fn intersect_closest_with(
         &self,
         kernel: impl NodeKernel,
         ray: &Ray,
+        leaving: Option<u32>,
         stats: &mut TraversalStats,
         accept: impl FnMut(u32, &TriangleHit) -> bool,
     ) -> Option<GeometryHit> {
         let mut leaves = ClosestLeaves {
             leaf: LeafRay::new(kernel, self, ray),
             accept,
+            leaving: leaving.unwrap_or(u32::MAX),
             best: None,
         };
         kernel.traverse(&self.bvh, ray, stats, &mut leaves);
@@ -137,21 +140,25 @@ impl Geometry {
         stats: &mut TraversalStats,
         accept: impl FnMut(u32, &TriangleHit) -> bool,
     ) -> bool {
-        with_node_kernel!(kernel => self.intersect_any_with(kernel, ray, stats, accept))
+        with_node_kernel!(kernel => self.intersect_any_with(kernel, ray, None, stats, accept))
     }
 
-    /// [`intersect_any`](Self::intersect_any) with the box tests of `kernel`.
+    /// [`intersect_any`](Self::intersect_any) with the box tests of `kernel`, leaving out
+    /// triangle `leaving` (the one a secondary ray starts on: a plane cannot be hit again
+    /// by a ray leaving it, so its exact test is sure to fail and need not run).
     #[inline(always)]
     pub fn intersect_any_with(
         &self,
         kernel: impl NodeKernel,
         ray: &Ray,
+        leaving: Option<u32>,
         stats: &mut TraversalStats,
         accept: impl FnMut(u32, &TriangleHit) -> bool,
     ) -> bool {
         let mut leaves = AnyLeaves {
             leaf: LeafRay::new(kernel, self, ray),
             accept,
+            leaving: leaving.unwrap_or(u32::MAX),
             found: false,
         };
         kernel.traverse(&self.bvh, ray, stats, &mut leaves);
@@ -245,16 +252,26 @@ impl<'a, K: NodeKernel> LeafRay<'a, K> {
 struct ClosestLeaves<'a, K, A> {
     leaf: LeafRay<'a, K>,
     accept: A,
+    /// The triangle the ray starts on, or `u32::MAX`.
+    leaving: u32,
     best: Option<GeometryHit>,
 }
 
 impl<K: NodeKernel, A: FnMut(u32, &TriangleHit) -> bool> LeafVisit for ClosestLeaves<'_, K, A> {
     #[inline(always)]
     fn visit(&mut self, first: usize, count: usize, mut t_max: f32) -> (f32, bool) {
-        let Self { leaf, accept, best } = self;
+        let Self {
+            leaf,
+            accept,
+            leaving,
+            best,
+        } = self;
         leaf.for_possible_hits(first, count, |wray, block, lane| {
+            let triangle = block.triangles[lane];
+            if triangle == *leaving {
+                return false;
+            }
             if let Some(hit) = wray.intersect_lane(block, lane, t_max) {
-                let triangle = block.triangles[lane];
                 if accept(triangle, &hit) {
                     *best = Some(GeometryHit { triangle, hit });
                     t_max = hit.t;
@@ -276,6 +293,8 @@ impl<K: NodeKernel, A: FnMut(u32, &TriangleHit) -> bool> LeafVisit for ClosestLe
 struct AnyLeaves<'a, K, A> {
     leaf: LeafRay<'a, K>,
     accept: A,
+    /// The triangle the ray starts on, or `u32::MAX`.
+    leaving: u32,
     found: bool,
 }
 
@@ -285,11 +304,15 @@ impl<K: NodeKernel, A: FnMut(u32, &TriangleHit) -> bool> LeafVisit for AnyLeaves
         let Self {
             leaf,
             accept,
+            leaving,
             found,
         } = self;
         *found = leaf.for_possible_hits(first, count, |wray, block, lane| {
-            wray.intersect_lane(block, lane, t_max)
-                .is_some_and(|hit| accept(block.triangles[lane], &hit))
+            let triangle = block.triangles[lane];
+            triangle != *leaving
+                && wray
+                    .intersect_lane(block, lane, t_max)
+                    .is_some_and(|hit| accept(triangle, &hit))
         });
         (t_max, *found)
     }

@@ -218,7 +218,9 @@ impl ErrorPoint {
 
     /// An origin for a ray leaving this surface point in direction `w`: pushed along the
     /// geometric normal `n` just past the error bound, to the side `w` points to, then
-    /// rounded away from the surface, so the new ray cannot re-hit the surface it left.
+    /// rounded away from the surface, so the new ray cannot re-hit the surface it left in
+    /// world space. (Moved into an instance's object space it is rounded again and may
+    /// land behind its triangle: traversal skips the triangle a ray leaves.)
     pub fn offset_origin(&self, n: Vec3A, w: Vec3A) -> Vec3A {
         let d = n.abs().dot(self.error);
         let mut offset = n * d;

@@ -19,7 +19,7 @@ use crate::math::{ErrorPoint, Ray};
 use crate::opacity::{Opacity, OpacityMaps};
 use crate::sampling::{SampleKey, cosine_hemisphere, orthonormal_basis};
 use crate::shading::{Shader, ShaderTable};
-use crate::tlas::{Candidate, Hit, TopLevel};
+use crate::tlas::{Candidate, Hit, InstanceTriangle, TopLevel};
 use crate::transparency::{
     COUNTED_HOLES, CandidateHoles, CountedHoles, TransparencyCurve, first_opaque_hole,
 };
@@ -200,6 +200,8 @@ pub struct SurfacePoint {
     pub uv: Vec2,
     /// The triangle's shader id.
     pub shader: u32,
+    /// The instance triangle the point lies on: rays leaving it skip its test.
+    pub triangle: InstanceTriangle,
 }
 
 /// The side of a surface light arrives from: the viewer's, or (through a translucent
@@ -377,7 +379,22 @@ impl<'a> RenderScene<'a> {
         curve: Option<&TransparencyCurve>,
         stats: &mut TraversalStats,
     ) -> Option<(Hit, bool)> {
-        with_node_kernel!(kernel => self.closest_adaptive_with(kernel, ray, curve, stats))
+        with_node_kernel!(kernel => self.closest_adaptive_with(kernel, ray, None, curve, stats))
+    }
+
+    /// The closest hit of a ray leaving the surface triangle `leaving` (which it cannot
+    /// hit again, so it is not tested), passing alpha holes exactly.
+    #[inline]
+    fn closest_leaving(
+        &self,
+        ray: &Ray,
+        leaving: InstanceTriangle,
+        stats: &mut TraversalStats,
+    ) -> Option<Hit> {
+        with_node_kernel!(
+            kernel => self.closest_adaptive_with(kernel, ray, Some(leaving), None, stats)
+        )
+        .map(|(hit, _)| hit)
     }
 
     #[inline(always)]
@@ -385,31 +402,35 @@ impl<'a> RenderScene<'a> {
         &self,
         kernel: impl NodeKernel,
         ray: &Ray,
+        leaving: Option<InstanceTriangle>,
         curve: Option<&TransparencyCurve>,
         stats: &mut TraversalStats,
     ) -> Option<(Hit, bool)> {
         if !self.shaders.needs_hit_filter() {
             return self
                 .top_level
-                .intersect_closest_with(kernel, self.geometry, ray, stats, |_| true)
+                .intersect_closest_with(kernel, self.geometry, ray, leaving, stats, |_| true)
                 .map(|hit| (hit, false));
         }
         let mut filter = TraversalStats::default();
         let result = match curve {
             None => {
                 let mut holes = CountedHoles::new(COUNTED_HOLES);
-                let hit =
-                    self.top_level
-                        .intersect_closest_with(kernel, self.geometry, ray, stats, |c| match self
-                            .filter(c, ray.direction, &mut filter)
-                        {
-                            FilterOutcome::Opaque => true,
-                            FilterOutcome::Hole => {
-                                holes.insert(c.t, ());
-                                false
-                            }
-                            FilterOutcome::Culled => false,
-                        });
+                let hit = self.top_level.intersect_closest_with(
+                    kernel,
+                    self.geometry,
+                    ray,
+                    leaving,
+                    stats,
+                    |c| match self.filter(c, ray.direction, &mut filter) {
+                        FilterOutcome::Opaque => true,
+                        FilterOutcome::Hole => {
+                            holes.insert(c.t, ());
+                            false
+                        }
+                        FilterOutcome::Culled => false,
+                    },
+                );
                 let t_hit = hit.map_or(f32::INFINITY, |h| h.t);
                 filter.holes_passed = holes.count_before(t_hit) as u64;
                 hit.map(|hit| (hit, false))
@@ -417,29 +438,34 @@ impl<'a> RenderScene<'a> {
             Some(curve) => {
                 let mut holes = CandidateHoles::new(curve.max_allowance() as usize + 1);
                 let mut last_accepted_hole = false;
-                let hit =
-                    self.top_level
-                        .intersect_closest_with(kernel, self.geometry, ray, stats, |c| {
-                            let outcome = self.filter(c, ray.direction, &mut filter);
-                            let accept = match outcome {
-                                FilterOutcome::Opaque => true,
-                                FilterOutcome::Culled => false,
-                                FilterOutcome::Hole => {
-                                    // Enough nearer holes seen already: this one is beyond the
-                                    // allowance whatever else turns up, so it may end the
-                                    // search early; the walk below picks the first such hole.
-                                    let beyond =
-                                        holes.count_before(c.t) >= curve.allowance(c.t) as usize;
-                                    holes.insert(c.t, *c);
-                                    beyond
-                                }
-                            };
-                            // Each accepted candidate becomes the closest so far.
-                            if accept {
-                                last_accepted_hole = outcome == FilterOutcome::Hole;
+                let hit = self.top_level.intersect_closest_with(
+                    kernel,
+                    self.geometry,
+                    ray,
+                    leaving,
+                    stats,
+                    |c| {
+                        let outcome = self.filter(c, ray.direction, &mut filter);
+                        let accept = match outcome {
+                            FilterOutcome::Opaque => true,
+                            FilterOutcome::Culled => false,
+                            FilterOutcome::Hole => {
+                                // Enough nearer holes seen already: this one is beyond the
+                                // allowance whatever else turns up, so it may end the
+                                // search early; the walk below picks the first such hole.
+                                let beyond =
+                                    holes.count_before(c.t) >= curve.allowance(c.t) as usize;
+                                holes.insert(c.t, *c);
+                                beyond
                             }
-                            accept
-                        });
+                        };
+                        // Each accepted candidate becomes the closest so far.
+                        if accept {
+                            last_accepted_hole = outcome == FilterOutcome::Hole;
+                        }
+                        accept
+                    },
+                );
                 let t_hit = hit.map_or(f32::INFINITY, |h| h.t);
                 let nearer = holes.sorted_before(t_hit);
                 if let Some(&(_, hole)) = first_opaque_hole(curve, nearer) {
@@ -473,41 +499,62 @@ impl<'a> RenderScene<'a> {
         allowance: Option<u32>,
         stats: &mut TraversalStats,
     ) -> bool {
-        with_node_kernel!(kernel => self.occluded_within_with(kernel, ray, allowance, stats))
+        self.occluded_leaving(ray, None, allowance, stats)
+    }
+
+    /// [`occluded_within`](Self::occluded_within) for a ray that starts on the triangle
+    /// `leaving`, which it cannot hit again: its test is left out.
+    #[inline]
+    fn occluded_leaving(
+        &self,
+        ray: &Ray,
+        leaving: Option<InstanceTriangle>,
+        allowance: Option<u32>,
+        stats: &mut TraversalStats,
+    ) -> bool {
+        with_node_kernel!(
+            kernel => self.occluded_leaving_with(kernel, ray, leaving, allowance, stats)
+        )
     }
 
     #[inline(always)]
-    fn occluded_within_with(
+    fn occluded_leaving_with(
         &self,
         kernel: impl NodeKernel,
         ray: &Ray,
+        leaving: Option<InstanceTriangle>,
         allowance: Option<u32>,
         stats: &mut TraversalStats,
     ) -> bool {
         if !self.shaders.needs_hit_filter() {
-            return self
-                .top_level
-                .intersect_any_with(kernel, self.geometry, ray, stats, |_| true);
+            return self.top_level.intersect_any_with(
+                kernel,
+                self.geometry,
+                ray,
+                leaving,
+                stats,
+                |_| true,
+            );
         }
         let mut filter = TraversalStats::default();
         let mut holes = CountedHoles::new(allowance.map_or(0, |a| a as usize + 1));
-        let hit = self
-            .top_level
-            .intersect_any_with(kernel, self.geometry, ray, stats, |c| {
-                match self.filter(c, ray.direction, &mut filter) {
-                    FilterOutcome::Opaque => true,
-                    FilterOutcome::Culled => false,
-                    FilterOutcome::Hole => {
-                        let Some(allowance) = allowance else {
-                            return false;
-                        };
-                        holes.insert(c.t, ());
-                        let beyond = holes.len() > allowance as usize;
-                        filter.opaque_holes += u64::from(beyond);
-                        beyond
+        let hit =
+            self.top_level
+                .intersect_any_with(kernel, self.geometry, ray, leaving, stats, |c| {
+                    match self.filter(c, ray.direction, &mut filter) {
+                        FilterOutcome::Opaque => true,
+                        FilterOutcome::Culled => false,
+                        FilterOutcome::Hole => {
+                            let Some(allowance) = allowance else {
+                                return false;
+                            };
+                            holes.insert(c.t, ());
+                            let beyond = holes.len() > allowance as usize;
+                            filter.opaque_holes += u64::from(beyond);
+                            beyond
+                        }
                     }
-                }
-            });
+                });
         stats.add(&filter);
         hit
     }
@@ -546,6 +593,10 @@ impl<'a> RenderScene<'a> {
             shading_normal,
             uv: self.uv_of(hit),
             shader: mesh.shaders[triangle],
+            triangle: InstanceTriangle {
+                slot: hit.slot,
+                triangle: hit.triangle,
+            },
         }
     }
 
@@ -572,7 +623,8 @@ impl<'a> RenderScene<'a> {
             return None;
         };
         let shadow = Ray::new(surface.point.offset_origin(outward, l), l);
-        (!self.occluded_within(&shadow, allowance, stats)).then_some((cos, side))
+        (!self.occluded_leaving(&shadow, Some(surface.triangle), allowance, stats))
+            .then_some((cos, side))
     }
 
     /// Light arriving directly at `surface` from the sun, the sky or the environment's
@@ -642,7 +694,7 @@ impl<'a> RenderScene<'a> {
                     continue;
                 };
                 let shadow = Ray::new(surface.point.offset_origin(outward, d), d);
-                if !self.occluded_within(&shadow, allowance, stats) {
+                if !self.occluded_leaving(&shadow, Some(surface.triangle), allowance, stats) {
                     // Cosine sampling cancels the cos/π of the Lambertian BRDF; the side's
                     // share is its probability.
                     radiance += side_factor(side) * sky.radiance(d) / (share * samples as f32);
@@ -690,7 +742,7 @@ impl<'a> RenderScene<'a> {
             // Cosine sampling cancels the cos/π of the Lambertian BSDF.
             throughput *= material.on(side) / share;
             let ray = Ray::new(surface.point.offset_origin(outward, d), d);
-            let Some((hit, _)) = self.closest_adaptive(&ray, None, stats) else {
+            let Some(hit) = self.closest_leaving(&ray, surface.triangle, stats) else {
                 break;
             };
             surface = self.surface(&hit, ray.direction);

@@ -50,6 +50,15 @@ pub struct Candidate {
 /// The closest accepted hit of a ray.
 pub type Hit = Candidate;
 
+/// One triangle of one placed instance: the surface a secondary ray starts on.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct InstanceTriangle {
+    /// TLAS slot of the instance.
+    pub slot: u32,
+    /// Triangle index in the instance's mesh.
+    pub triangle: u32,
+}
+
 /// Why instances were left out of a build.
 #[derive(Clone, Debug, Default, PartialEq, Eq)]
 pub struct SkippedInstances {
@@ -441,22 +450,31 @@ impl TopLevel {
         stats: &mut TraversalStats,
         filter: impl FnMut(&Candidate) -> bool,
     ) -> Option<Hit> {
-        with_node_kernel!(kernel => self.intersect_closest_with(kernel, library, ray, stats, filter))
+        with_node_kernel!(
+            kernel => self.intersect_closest_with(kernel, library, ray, None, stats, filter)
+        )
     }
 
     /// [`intersect_closest`](Self::intersect_closest) with the box tests of `kernel`, at
-    /// both levels.
+    /// both levels; the triangle `leaving` (the one the ray starts on) is not tested, as
+    /// in [`intersect_any_leaving`](Self::intersect_any_leaving).
     #[inline(always)]
     pub fn intersect_closest_with(
         &self,
         kernel: impl NodeKernel,
         library: &GeometryLibrary,
         ray: &Ray,
+        leaving: Option<InstanceTriangle>,
         stats: &mut TraversalStats,
         mut filter: impl FnMut(&Candidate) -> bool,
     ) -> Option<Hit> {
         stats.closest_rays += 1;
         let mut inner = TraversalStats::default();
+        let leaving_in = |slot: usize| {
+            leaving
+                .filter(|leaving| leaving.slot as usize == slot)
+                .map(|leaving| leaving.triangle)
+        };
         let mut best = None;
         self.bvh.traverse_closest_with(
             kernel,
@@ -472,6 +490,7 @@ impl TopLevel {
                 let found = geometry.intersect_closest_with(
                     kernel,
                     &local,
+                    leaving_in(slot),
                     &mut inner,
                     |triangle, hit| {
                         filter(&Candidate {
@@ -509,22 +528,47 @@ impl TopLevel {
         stats: &mut TraversalStats,
         filter: impl FnMut(&Candidate) -> bool,
     ) -> bool {
-        with_node_kernel!(kernel => self.intersect_any_with(kernel, library, ray, stats, filter))
+        self.intersect_any_leaving(library, ray, None, stats, filter)
+    }
+
+    /// [`intersect_any`](Self::intersect_any) for a ray that starts on the instance
+    /// triangle `leaving`, which is not tested: a ray leaving a plane cannot meet it
+    /// again, but the ray's origin, offset past the error of the world-space point, is
+    /// rounded again on its way into the instance's object space and may land a hair
+    /// behind the triangle there.
+    #[inline]
+    pub fn intersect_any_leaving(
+        &self,
+        library: &GeometryLibrary,
+        ray: &Ray,
+        leaving: Option<InstanceTriangle>,
+        stats: &mut TraversalStats,
+        filter: impl FnMut(&Candidate) -> bool,
+    ) -> bool {
+        with_node_kernel!(
+            kernel => self.intersect_any_with(kernel, library, ray, leaving, stats, filter)
+        )
     }
 
     /// [`intersect_any`](Self::intersect_any) with the box tests of `kernel`, at both
-    /// levels.
+    /// levels; the triangle `leaving` (the one the ray starts on) is not tested.
     #[inline(always)]
     pub fn intersect_any_with(
         &self,
         kernel: impl NodeKernel,
         library: &GeometryLibrary,
         ray: &Ray,
+        leaving: Option<InstanceTriangle>,
         stats: &mut TraversalStats,
         mut filter: impl FnMut(&Candidate) -> bool,
     ) -> bool {
         stats.any_rays += 1;
         let mut inner = TraversalStats::default();
+        let leaving_in = |slot: usize| {
+            leaving
+                .filter(|leaving| leaving.slot as usize == slot)
+                .map(|leaving| leaving.triangle)
+        };
         let occluded = self.bvh.traverse_any_with(
             kernel,
             ray,
@@ -536,7 +580,8 @@ impl TopLevel {
                     t_max,
                     ..ray.transformed(&record.world_to_object)
                 };
-                geometry.intersect_any_with(kernel, &local, &mut inner, |triangle, hit| {
+                let leaving = leaving_in(slot);
+                geometry.intersect_any_with(kernel, &local, leaving, &mut inner, |triangle, hit| {
                     filter(&Candidate {
                         slot: slot as u32,
                         instance: record.id,
