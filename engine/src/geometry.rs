@@ -271,11 +271,11 @@ impl<K: NodeKernel, A: FnMut(u32, &TriangleHit) -> bool> LeafVisit for ClosestLe
             if triangle == *leaving {
                 return false;
             }
-            if let Some(hit) = wray.intersect_lane(block, lane, t_max) {
-                if accept(triangle, &hit) {
-                    *best = Some(GeometryHit { triangle, hit });
-                    t_max = hit.t;
-                }
+            if let Some(hit) = wray.intersect_lane(block, lane, t_max)
+                && accept(triangle, &hit)
+            {
+                *best = Some(GeometryHit { triangle, hit });
+                t_max = hit.t;
             }
             false
         });
