@@ -360,7 +360,7 @@ impl<'a> RenderScene<'a> {
         let mesh = &self.geometry.geometries[candidate.geometry.0 as usize].mesh;
         let [p0, p1, p2] = mesh.triangle(candidate.triangle as usize);
         let normal = (p1 - p0).cross(p2 - p0);
-        normal.dot(record.world_to_object.transform_vector3a(direction)) < 0.0
+        normal.dot(record.world_to_object().transform_vector3a(direction)) < 0.0
     }
 
     /// The closest hit along `ray` that the hit filter accepts.
@@ -566,10 +566,10 @@ impl<'a> RenderScene<'a> {
         let triangle = hit.triangle as usize;
         let [p0, p1, p2] = mesh.triangle(triangle);
         let b = hit.barycentrics;
-        let point = hit_point(p0, p1, p2, b).transformed(&record.object_to_world);
+        let point = hit_point(p0, p1, p2, b).transformed(&record.object_to_world());
         // Normals transform by the inverse transpose; a negative determinant flips them
         // consistently with the mirrored winding.
-        let normal_matrix = record.world_to_object.matrix3.transpose();
+        let normal_matrix = record.world_to_object().matrix3.transpose();
         let mut geometric_normal = (normal_matrix * (p1 - p0).cross(p2 - p0))
             .normalize_or(-incoming.normalize_or(Vec3A::Y));
         if geometric_normal.dot(incoming) > 0.0 {

@@ -419,7 +419,7 @@ fn instance_of_an_empty_mesh_and_singular_transforms_are_harmless() {
             boxes[r.id as usize] = lib
                 .get(r.geometry)
                 .unwrap()
-                .transformed_bounds(&r.object_to_world);
+                .transformed_bounds(&r.object_to_world());
         }
         tlas.bvh.validate(&boxes).unwrap();
     }

@@ -106,7 +106,10 @@ fn refitted_tlas_equals_brute_force_over_the_moved_instances() {
         }
         // Records follow the move: every slot holds its instance's new transform.
         for record in &tlas.instances {
-            assert_eq!(record.object_to_world, moved[record.id as usize].transform);
+            assert_eq!(
+                record.object_to_world(),
+                moved[record.id as usize].transform
+            );
         }
     }
 }

@@ -143,8 +143,8 @@ fn spawned_rays_never_rehit_their_own_triangle() {
             let mesh = &lib.geometries[record.geometry.0 as usize].mesh;
             let [p0, p1, p2] = mesh.triangle(hit.triangle as usize);
             let point =
-                hit_point(p0, p1, p2, hit.barycentrics).transformed(&record.object_to_world);
-            let normal_matrix = record.world_to_object.matrix3.transpose();
+                hit_point(p0, p1, p2, hit.barycentrics).transformed(&record.object_to_world());
+            let normal_matrix = record.world_to_object().matrix3.transpose();
             let mut n = (normal_matrix * (p1 - p0).cross(p2 - p0)).normalize();
             if !n.is_finite() {
                 continue;
@@ -243,9 +243,9 @@ fn shadow_rays_leaving_far_instances_do_not_shadow_their_own_triangle() {
         };
         let record = tlas.record(hit.slot as usize);
         let [p0, p1, p2] = lib.geometries[0].mesh.triangle(hit.triangle as usize);
-        let point = hit_point(p0, p1, p2, hit.barycentrics).transformed(&record.object_to_world);
+        let point = hit_point(p0, p1, p2, hit.barycentrics).transformed(&record.object_to_world());
         let mut n =
-            (record.world_to_object.matrix3.transpose() * (p1 - p0).cross(p2 - p0)).normalize();
+            (record.world_to_object().matrix3.transpose() * (p1 - p0).cross(p2 - p0)).normalize();
         if !n.is_finite() {
             continue;
         }

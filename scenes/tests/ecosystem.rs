@@ -174,7 +174,7 @@ fn plants_are_spawned_moved_and_despawned_one_by_one() {
         .resource::<TopLevel>()
         .instances
         .iter()
-        .find(|r| r.object_to_world.translation.x == -4.0)
+        .find(|r| r.object_to_world().translation.x == -4.0)
         .copied();
     assert!(record.is_some(), "the TLAS holds the moved plant");
 

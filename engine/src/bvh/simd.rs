@@ -143,7 +143,16 @@ fn hit_half(ray: &NodeRay, node: &WideNode, first: usize, t_max: f32) -> (Vec4, 
 }
 
 #[cfg(target_arch = "x86_64")]
-pub use avx2::{Avx2, prefetch, prefetch_children, prefetch_node};
+pub use avx2::{Avx2, affine_from_columns, prefetch, prefetch_children, prefetch_node};
+
+/// The transform whose twelve column values (x axis, y axis, z axis, translation) start
+/// `columns`; the thirteenth value only pads the last load. The same bits as
+/// `Affine3A::from_cols_array` in the columns' lanes.
+#[cfg(not(target_arch = "x86_64"))]
+#[inline(always)]
+pub fn affine_from_columns(columns: &[f32; 13]) -> Affine3A {
+    Affine3A::from_cols_slice(&columns[..12])
+}
 
 /// Prefetching is an x86 hint here; elsewhere nothing.
 #[cfg(not(target_arch = "x86_64"))]
@@ -215,6 +224,19 @@ mod avx2 {
             }
             _mm_prefetch::<_MM_HINT_T0>(first.add(last));
         }
+    }
+
+    /// The transform whose twelve column values (x axis, y axis, z axis, translation)
+    /// start `columns`, in four unaligned 16-byte loads (SSE2, so any x86-64) instead of
+    /// twelve scalar inserts: each column's fourth lane holds the next value, which
+    /// `Vec3A` leaves unused (the thirteenth value exists so the last load stays inside
+    /// the array).
+    #[inline(always)]
+    pub fn affine_from_columns(columns: &[f32; 13]) -> Affine3A {
+        let base = columns.as_ptr();
+        // SAFETY: each load reads four f32 at offsets 0, 3, 6 and 9 of thirteen.
+        let column = |at: usize| glam::Vec3A::from(unsafe { _mm_loadu_ps(base.add(at)) });
+        Affine3A::from_cols(column(0), column(3), column(6), column(9))
     }
 
     /// Proof that this CPU runs AVX2: only [`detect`](Self::detect) makes one.
@@ -483,6 +505,33 @@ mod tests {
     #[cfg(target_arch = "x86_64")]
     fn avx2_here() -> Avx2 {
         Avx2::on_this_cpu().expect("this test needs an AVX2 machine (CI has one)")
+    }
+
+    #[test]
+    fn transforms_from_packed_columns_transform_as_the_scalar_ones() {
+        let mut state = 11;
+        for case in 0..1000 {
+            let mut values = [0.0f32; 13];
+            for v in &mut values {
+                *v = (uniform(&mut state) - 0.5) * 10f32.powi(case % 7 - 3);
+            }
+            // The padding value must not leak into any lane the transform uses.
+            values[12] = [f32::NAN, f32::INFINITY, 1e-40, -7.0][case as usize % 4];
+            let packed = affine_from_columns(&values);
+            let scalar = Affine3A::from_cols_slice(&values[..12]);
+            assert_eq!(packed.to_cols_array(), scalar.to_cols_array());
+            let p = glam::Vec3A::new(uniform(&mut state), -2.0, uniform(&mut state) * 1e3);
+            let (a, b) = (packed.transform_point3a(p), scalar.transform_point3a(p));
+            assert_eq!(
+                a.to_array().map(f32::to_bits),
+                b.to_array().map(f32::to_bits)
+            );
+            let (a, b) = (packed.transform_vector3a(p), scalar.transform_vector3a(p));
+            assert_eq!(
+                a.to_array().map(f32::to_bits),
+                b.to_array().map(f32::to_bits)
+            );
+        }
     }
 
     #[cfg(target_arch = "x86_64")]
