@@ -1,9 +1,11 @@
 //! The box test of a wide node on two kernels that give the same bits: a portable one
 //! (two SSE halves through glam) and AVX2 (one 8-lane register per coordinate), picked
 //! once at run time; the same choice for the triangle blocks' edge check and the
-//! instances' support-function boxes, and the prefetch hints. This module holds the
-//! engine's only `unsafe`: calls into `#[target_feature]` functions, allowed by an
-//! [`Avx2`] value that exists only when the CPU has AVX2.
+//! instances' support-function boxes, the prefetch hints, and the instance transforms'
+//! packed columns loaded in four SSE2 loads. This module holds the engine's only
+//! `unsafe`: calls into `#[target_feature]` functions, allowed by an [`Avx2`] value that
+//! exists only when the CPU has AVX2, and raw loads inside arrays whose length the
+//! signature fixes.
 
 use super::traverse::{FAR_SCALE, LeafVisit, NEAR_SCALE, NodeRay};
 use super::{Bvh, TraversalStats, WIDTH, WideNode};
@@ -173,7 +175,7 @@ pub fn prefetch_children(_node: &WideNode) {}
 #[expect(
     unsafe_code,
     reason = "AVX2 kernels are #[target_feature] functions: calling them, and loading and \
-              storing 256-bit registers, is unsafe; an Avx2 value proves the CPU has it"
+              storing 128- and 256-bit registers, is unsafe; an Avx2 value proves the CPU has it"
 )]
 mod avx2 {
     use super::{
