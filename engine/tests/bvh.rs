@@ -7,7 +7,7 @@ use common::*;
 use glam::{Affine3A, Vec3, Vec3A};
 use proptest::prelude::*;
 use sylva_engine::bvh::{
-    BuildParams, BuildScratch, Bvh, GRID_FROM, PADDING, TraversalStats, WIDTH,
+    BOTTOM_GRID_FROM, BuildParams, BuildScratch, Bvh, GRID_FROM, PADDING, TraversalStats, WIDTH,
 };
 use sylva_engine::geometry::{Geometry, GeometryId, GeometryLibrary};
 use sylva_engine::math::{Aabb, Ray};
@@ -664,11 +664,13 @@ fn clustered_top_level_trees_give_every_primitive_a_lane_and_stay_as_good() {
     assert!((0.9..1.1).contains(&ratio), "node cost ratio {ratio}");
 }
 
-/// Above [`GRID_FROM`] primitives the top level splits between grid cells first: that
-/// path runs (its tree differs from the one without cells), and its hits equal brute
-/// force, for triangles spread over a plane as plants are and over a volume.
+/// Above [`GRID_FROM`] primitives the top level splits between grid cells first, and
+/// so does the bottom level above [`BOTTOM_GRID_FROM`] (here from `GRID_FROM` on, to
+/// keep the brute force short): that path runs (its tree differs from the one without
+/// cells), and its hits equal brute force, for triangles spread over a plane as plants
+/// and terrains are and over a volume.
 #[test]
-fn grid_cell_top_levels_match_brute_force() {
+fn grid_cell_trees_match_brute_force() {
     let mut rng = TestRng::new(41);
     let n = GRID_FROM + 5_000;
     let flat = {
@@ -679,23 +681,42 @@ fn grid_cell_top_levels_match_brute_force() {
         mesh
     };
     let volume = random_mesh(&mut rng, n, 20.0, 0.8);
-    let without_cells = BuildParams {
-        grid_cell: 0,
-        ..BuildParams::TOP_LEVEL
+    let bottom = BuildParams {
+        grid_from: GRID_FROM,
+        ..BuildParams::BOTTOM_LEVEL
     };
-    for (name, mesh) in [("flat", flat), ("volume", volume)] {
-        let bounds = bounds_of(&mesh);
-        let (gridded, plain) = (
-            Bvh::build(&bounds, BuildParams::TOP_LEVEL),
-            Bvh::build(&bounds, without_cells),
+    for (level, params) in [("top", BuildParams::TOP_LEVEL), ("bottom", bottom)] {
+        let without_cells = BuildParams {
+            grid_cell: 0,
+            ..params
+        };
+        for (name, mesh) in [("flat", &flat), ("volume", &volume)] {
+            let bounds = bounds_of(mesh);
+            let (gridded, plain) = (
+                Bvh::build(&bounds, params),
+                Bvh::build(&bounds, without_cells),
+            );
+            gridded.validate(&bounds).unwrap();
+            assert_ne!(
+                gridded.content_hash(),
+                plain.content_hash(),
+                "{level} level, {name}: no cells made"
+            );
+            let rays: Vec<Ray> = (0..400).map(|_| random_ray(&mut rng, 70.0)).collect();
+            check_mesh_against_brute_force(mesh.clone(), &rays, params);
+        }
+    }
+    // The preset itself: cells from BOTTOM_GRID_FROM triangles on, none below.
+    let terrain = bounds_of(&random_mesh(&mut rng, BOTTOM_GRID_FROM, 300.0, 0.8));
+    for (n, cells) in [(BOTTOM_GRID_FROM, true), (BOTTOM_GRID_FROM - 1, false)] {
+        let plain = BuildParams {
+            grid_cell: 0,
+            ..BuildParams::BOTTOM_LEVEL
+        };
+        let (preset, plain) = (
+            Bvh::build(&terrain[..n], BuildParams::BOTTOM_LEVEL),
+            Bvh::build(&terrain[..n], plain),
         );
-        gridded.validate(&bounds).unwrap();
-        assert_ne!(
-            gridded.content_hash(),
-            plain.content_hash(),
-            "{name}: no cells made"
-        );
-        let rays: Vec<Ray> = (0..400).map(|_| random_ray(&mut rng, 70.0)).collect();
-        check_mesh_against_brute_force(mesh, &rays, BuildParams::TOP_LEVEL);
+        assert_eq!(preset.content_hash() != plain.content_hash(), cells, "{n}");
     }
 }

@@ -39,11 +39,13 @@ pub struct BuildParams {
     /// lanes to spare, else in a node of their own. 1 turns it off; it applies only to
     /// trees of one-primitive leaves (`max_leaf_size` and `leaf_block` 1).
     pub lane_cluster: usize,
-    /// Builds of at least [`GRID_FROM`] primitives that bin one axis first sort them
-    /// into the cells of a grid, about this many to a cell: the SAH then splits between
-    /// whole cells down to single ones, and each cell's tree is built as usual (0: off;
-    /// cells hold at least 64 on average).
+    /// Builds of at least `grid_from` primitives first sort them into the cells of a
+    /// grid, about this many to a cell: the SAH then splits between whole cells down to
+    /// single ones, and each cell's tree is built as usual (0: off; cells hold at least
+    /// 64 on average).
     pub grid_cell: usize,
+    /// The size from which a build sorts into grid cells (see `grid_cell`).
+    pub grid_from: usize,
 }
 
 impl BuildParams {
@@ -57,6 +59,7 @@ impl BuildParams {
         leaf_block: 1,
         lane_cluster: 1,
         grid_cell: 0,
+        grid_from: usize::MAX,
     };
     /// The default: binned SAH over all three axes.
     pub const BALANCED: BuildParams = BuildParams {
@@ -68,6 +71,7 @@ impl BuildParams {
         leaf_block: 1,
         lane_cluster: 1,
         grid_cell: 0,
+        grid_from: usize::MAX,
     };
     /// Many bins and small leaves: best traversal, slowest build.
     pub const QUALITY: BuildParams = BuildParams {
@@ -79,6 +83,7 @@ impl BuildParams {
         leaf_block: 1,
         lane_cluster: 1,
         grid_cell: 0,
+        grid_from: usize::MAX,
     };
     /// The top level's default: eight bins along the longest axis of the centroids, and
     /// one instance per leaf. Over plant instances it builds faster than
@@ -106,6 +111,7 @@ impl BuildParams {
         leaf_block: 1,
         lane_cluster: 8,
         grid_cell: 1024,
+        grid_from: GRID_FROM,
     };
     /// The bottom level's default, over a species' triangles: leaves are tested four
     /// triangles at a time, so the SAH counts them in blocks of four (instructions per
@@ -119,7 +125,8 @@ impl BuildParams {
         longest_axis_only: false,
         leaf_block: 4,
         lane_cluster: 1,
-        grid_cell: 0,
+        grid_cell: 1024,
+        grid_from: BOTTOM_GRID_FROM,
     };
     /// Every preset with its name, for tests and benchmarks.
     pub const PRESETS: [(&'static str, BuildParams); 5] = [
@@ -143,9 +150,12 @@ const MAX_BINS: usize = 32;
 const FORCED_MEDIAN_DEPTH: usize = MAX_DEPTH - 33;
 /// Nodes at least this large bin their primitives in parallel.
 const PARALLEL_BINNING: usize = 1 << 16;
-/// Builds of at least this many primitives sort them into grid cells first (see
-/// [`BuildParams::grid_cell`]).
+/// The top level's [`BuildParams::grid_from`]: builds of at least this many instances
+/// sort them into grid cells first.
 pub const GRID_FROM: usize = 1 << 15;
+/// The bottom level's [`BuildParams::grid_from`]: only meshes the size of a terrain.
+/// Plants of 30–200 k triangles split by grid cells cost rays more nodes.
+pub const BOTTOM_GRID_FROM: usize = 1 << 18;
 /// Splits between grid cells this deep or deeper halve the cells by position, so the
 /// cells' own trees keep their depth budget whatever the SAH made of the cells above.
 const GRID_MEDIAN_DEPTH: usize = 24;
@@ -466,7 +476,7 @@ impl Bvh {
             .map(Extent::of)
             .reduce(|| Extent::EMPTY, Extent::union);
         let builder = Builder { params };
-        let gridded = params.grid_cell > 0 && params.longest_axis_only && refs.len() >= GRID_FROM;
+        let gridded = params.grid_cell > 0 && refs.len() >= params.grid_from;
         let cell_tree = if gridded {
             builder.sort_into_cells(refs, &mut scratch.sorted, &extent.centroids)
         } else {

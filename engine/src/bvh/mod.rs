@@ -12,7 +12,7 @@ mod traverse;
 mod validate;
 mod wide;
 
-pub use build::{BuildParams, BuildScratch, GRID_FROM};
+pub use build::{BOTTOM_GRID_FROM, BuildParams, BuildScratch, GRID_FROM};
 pub use refit::RefitError;
 pub use traverse::{LeafVisit, NodeRay, TraversalStats};
 pub use validate::BvhReport;
