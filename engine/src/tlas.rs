@@ -580,7 +580,8 @@ impl TopLevel {
     }
 
     /// [`intersect_any`](Self::intersect_any) with the box tests of `kernel`, at both
-    /// levels; the triangle `leaving` (the one the ray starts on) is not tested.
+    /// levels; the triangle `leaving` (the one the ray starts on) is not tested, and its
+    /// instance is tested before the top level is walked.
     #[inline(always)]
     pub fn intersect_any_with(
         &self,
@@ -593,34 +594,39 @@ impl TopLevel {
     ) -> bool {
         stats.any_rays += 1;
         let mut inner = TraversalStats::default();
-        let leaving_in = |slot: usize| {
-            leaving
-                .filter(|leaving| leaving.slot as usize == slot)
-                .map(|leaving| leaving.triangle)
+        let mut test = |slot: usize, t_max: f32, leaving: Option<u32>| {
+            let record = &self.instances[slot];
+            let geometry = &library.geometries[record.geometry.0 as usize];
+            let local = Ray {
+                t_max,
+                ..ray.transformed(&record.world_to_object())
+            };
+            geometry.intersect_any_with(kernel, &local, leaving, &mut inner, |triangle, hit| {
+                filter(&Candidate {
+                    slot: slot as u32,
+                    instance: record.id,
+                    geometry: record.geometry,
+                    triangle,
+                    barycentrics: hit.barycentrics,
+                    t: hit.t,
+                })
+            })
         };
-        let occluded = self.bvh.traverse_any_with(
+        // A ray leaving a plant is most often stopped by that plant: its own instance
+        // first, then the rest of the top level without it (whose walk still counts the
+        // slot among its primitive tests when it reaches it).
+        let own = leaving.map(|leaving| leaving.slot as usize);
+        let occluded = match leaving {
+            Some(leaving) if (leaving.slot as usize) < self.instances.len() => {
+                stats.primitive_tests += 1;
+                test(leaving.slot as usize, ray.t_max, Some(leaving.triangle))
+            }
+            _ => false,
+        } || self.bvh.traverse_any_with(
             kernel,
             ray,
             stats,
-            |slot, t_max| {
-                let record = &self.instances[slot];
-                let geometry = &library.geometries[record.geometry.0 as usize];
-                let local = Ray {
-                    t_max,
-                    ..ray.transformed(&record.world_to_object())
-                };
-                let leaving = leaving_in(slot);
-                geometry.intersect_any_with(kernel, &local, leaving, &mut inner, |triangle, hit| {
-                    filter(&Candidate {
-                        slot: slot as u32,
-                        instance: record.id,
-                        geometry: record.geometry,
-                        triangle,
-                        barycentrics: hit.barycentrics,
-                        t: hit.t,
-                    })
-                })
-            },
+            |slot, t_max| Some(slot) != own && test(slot, t_max, None),
             |slot| prefetch(&self.instances[slot]),
         );
         stats.add(&inner);
