@@ -561,7 +561,13 @@ impl Builder {
                         partition(refs, |i, _| usize::from(prim_bins[i][axis]) < bin)
                     } else {
                         let scale = axis_scale(scale, axis);
-                        partition(refs, |_, c| bin_on_axis(c, scale, min, bins) < bin)
+                        match split_plane(scale, min, bins, axis, bin) {
+                            Some(plane) => {
+                                let (plane, lane) = (Vec3A::splat(plane), 1 << axis);
+                                partition(refs, |_, c| c.cmplt(plane).bitmask() & lane != 0)
+                            }
+                            None => partition(refs, |_, c| bin_on_axis(c, scale, min, bins) < bin),
+                        }
                     };
                 let side = |bounds, centroids| Extent { bounds, centroids };
                 (
@@ -1106,6 +1112,70 @@ fn bin_on_axis(centroid: Vec3A, scale: Vec3A, min: Vec3A, bins: usize) -> usize 
     (k.to_bits() & 0x7f_ffff) as usize
 }
 
+/// The plane that splits bins below `split` from the rest on `axis` (`scale` zero on the
+/// other axes): the least coordinate whose [`bin_on_axis`] is at least `split`, so a
+/// centroid goes left exactly when its coordinate is below it (the binning is monotone).
+/// A partition then compares one lane instead of binning again. Found by galloping from
+/// the bin's nominal start, then bisecting, over the floats in order; `None` when the
+/// start is not finite (the caller bins each centroid instead).
+fn split_plane(scale: Vec3A, min: Vec3A, bins: usize, axis: usize, split: usize) -> Option<f32> {
+    // Floats as integers in the floats' order (-0.0 just below +0.0), and back.
+    let key = |x: f32| {
+        let bits = x.to_bits() as i32;
+        bits ^ ((bits >> 31) & 0x7fff_ffff)
+    };
+    let float = |k: i32| f32::from_bits((k ^ ((k >> 31) & 0x7fff_ffff)) as u32);
+    let right_of_plane = |k: i32| {
+        let mut centroid = min;
+        centroid[axis] = float(k);
+        bin_on_axis(centroid, scale, min, bins) >= split
+    };
+    let start = min[axis] + split as f32 / scale[axis];
+    if !start.is_finite() {
+        return None;
+    }
+    let (lowest, highest) = (key(f32::MIN), key(f32::MAX));
+    // Bracket the plane between a key left of it (`below`) and one right of it
+    // (`above`), with steps doubling from the start.
+    let start = key(start);
+    let (below, above) = if right_of_plane(start) {
+        let mut step = 1i64;
+        loop {
+            let k = (i64::from(start) - step).max(i64::from(lowest)) as i32;
+            if !right_of_plane(k) {
+                break (k, start);
+            }
+            if k == lowest {
+                return Some(f32::MIN);
+            }
+            step *= 2;
+        }
+    } else {
+        let mut step = 1i64;
+        loop {
+            let k = (i64::from(start) + step).min(i64::from(highest)) as i32;
+            if right_of_plane(k) {
+                break (start, k);
+            }
+            if k == highest {
+                return None;
+            }
+            step *= 2;
+        }
+    };
+    // In i64: the keys of all floats span more than an i32.
+    let (mut below, mut above) = (i64::from(below), i64::from(above));
+    while above - below > 1 {
+        let middle = below + (above - below) / 2;
+        if right_of_plane(middle as i32) {
+            above = middle;
+        } else {
+            below = middle;
+        }
+    }
+    Some(float(above as i32))
+}
+
 /// `scale` with every lane but `axis` zeroed, for [`bin_on_axis`].
 fn axis_scale(scale: Vec3A, axis: usize) -> Vec3A {
     Vec3A::select(
@@ -1441,6 +1511,43 @@ impl Builder {
 mod tests {
     use super::*;
     use crate::test_random::uniform;
+
+    #[test]
+    fn split_planes_part_centroids_as_their_bins_do() {
+        let mut state = 0x5b1a_9e11u64;
+        for case in 0..2_000 {
+            // Centroid boxes near and far from the origin, wide and a few ulps thin.
+            let offset = [0.0, -3.0, 1.0e5, -2.5e4][case % 4];
+            let width = [1.0e-3, 1.0, 300.0, 4.0e-2][(case / 4) % 4];
+            let lo = Vec3A::new(
+                offset + uniform(&mut state) * width,
+                offset - uniform(&mut state) * width,
+                offset,
+            );
+            let hi = lo + Vec3A::new(width, width * uniform(&mut state), width * 1.0e-4);
+            let bins = [2, 8, 16, 32][case % 4];
+            let (scale, min) = bin_transform(&Aabb::new(lo, hi), bins);
+            for axis in (0..3).filter(|&axis| scale[axis] != 0.0) {
+                let on_axis = axis_scale(scale, axis);
+                for split in 1..bins {
+                    let plane = split_plane(on_axis, min, bins, axis, split)
+                        .unwrap_or_else(|| panic!("case {case}: no plane for bin {split}"));
+                    let goes_left = |x: f32| {
+                        let mut centroid = min;
+                        centroid[axis] = x;
+                        bin_on_axis(centroid, on_axis, min, bins) < split
+                    };
+                    let near = [plane, plane.next_down(), plane.next_up(), 0.0, -0.0];
+                    let spread = (0..20).map(|_| {
+                        lo[axis] + (uniform(&mut state) * 1.2 - 0.1) * (hi[axis] - lo[axis])
+                    });
+                    for x in near.into_iter().chain(spread) {
+                        assert_eq!(x < plane, goes_left(x), "case {case}, axis {axis}, x {x}");
+                    }
+                }
+            }
+        }
+    }
 
     #[test]
     fn a_pair_splits_as_the_bins_would_split_it() {
