@@ -986,7 +986,7 @@ impl Builder {
         let (mut lo, mut hi) = ([Vec3A::INFINITY; 3], [Vec3A::NEG_INFINITY; 3]);
         let mut counts = [0u32; 3];
         let (mut best, mut best_bin, mut found) = (Vec3A::ZERO, Vec3A::ZERO, BVec3A::FALSE);
-        for (i, &right) in right_cost.iter().enumerate().take(bins).skip(1) {
+        for (i, &right) in (1..bins).zip(&right_cost[1..bins]) {
             for (axis, bin) in axis_bins(i - 1).into_iter().enumerate() {
                 lo[axis] = lo[axis].min(bin.bounds.min);
                 hi[axis] = hi[axis].max(bin.bounds.max);
