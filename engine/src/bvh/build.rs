@@ -950,7 +950,8 @@ impl Builder {
     /// The SAH sweep over the bins `fill_bins` left in `scratch` (`bins` per axis, the
     /// axes whose `scale` is non-zero): the cheapest split as its cost, axis and first
     /// bin on the right, the first of equal ones in axis and bin order. The three axes
-    /// go together in SIMD lanes (they were three quarters of the sweep's work alone).
+    /// go together in SIMD lanes (one axis at a time, the sweep was a quarter of a
+    /// bottom-level build: near the leaves it runs more steps than there are triangles).
     /// Only the boxes are swept: the sides' centroid boxes come from the partition.
     fn sweep(
         &self,
