@@ -965,42 +965,41 @@ impl Builder {
         bins: usize,
         scale: Vec3A,
     ) -> Option<(f32, usize, usize)> {
-        let axis_bins = |i: usize| [0, 1, 2].map(|axis| &scratch.bins[axis * bins + i]);
-        // The three axes' boxes' areas in the lanes, each the same operations in the
-        // same order as `Aabb::surface_area` (the boxes of bins with primitives are not
-        // empty), so trees do not depend on the sweep being vectorised.
-        let areas = |lo: [Vec3A; 3], hi: [Vec3A; 3]| {
-            let e = Mat3A::from_cols(hi[0] - lo[0], hi[1] - lo[1], hi[2] - lo[2]).transpose();
-            let (x, y, z) = (e.x_axis, e.y_axis, e.z_axis);
-            (x * y + y * z + z * x) * 2.0
-        };
-        let blocks =
-            |counts: [u32; 3]| Vec3A::from_array(counts.map(|count| self.blocks(count as usize)));
-        let (mut lo, mut hi) = ([Vec3A::INFINITY; 3], [Vec3A::NEG_INFINITY; 3]);
-        let mut counts = [0u32; 3];
-        let right_cost = &mut scratch.right_cost;
-        for i in (1..bins).rev() {
-            for (axis, bin) in axis_bins(i).into_iter().enumerate() {
+        let all_bins = &scratch.bins;
+        // One side of the sweep, the three axes' boxes and counts: `grow` adds bin `i`
+        // of each axis, `cost` gives the three costs in the lanes (areas with the same
+        // operations in the same order as `Aabb::surface_area`, whose boxes with
+        // primitives are not empty, so trees do not depend on the sweep being
+        // vectorised) and whether each side is empty.
+        let mut side = ([Vec3A::INFINITY; 3], [Vec3A::NEG_INFINITY; 3], [0u32; 3]);
+        let grow = |(lo, hi, counts): &mut ([Vec3A; 3], [Vec3A; 3], [u32; 3]), i: usize| {
+            for axis in 0..3 {
+                let bin = &all_bins[axis * bins + i];
                 lo[axis] = lo[axis].min(bin.bounds.min);
                 hi[axis] = hi[axis].max(bin.bounds.max);
                 counts[axis] += bin.count;
             }
+        };
+        let cost = |(lo, hi, counts): &([Vec3A; 3], [Vec3A; 3], [u32; 3])| {
+            let e = Mat3A::from_cols(hi[0] - lo[0], hi[1] - lo[1], hi[2] - lo[2]).transpose();
+            let (x, y, z) = (e.x_axis, e.y_axis, e.z_axis);
+            let blocks = Vec3A::from_array(counts.map(|count| self.blocks(count as usize)));
             let empty = BVec3A::from(counts.map(|count| count == 0));
-            let cost = areas(lo, hi) * blocks(counts);
+            ((x * y + y * z + z * x) * 2.0 * blocks, empty)
+        };
+        let right_cost = &mut scratch.right_cost;
+        for i in (1..bins).rev() {
+            grow(&mut side, i);
+            let (cost, empty) = cost(&side);
             right_cost[i] = Vec3A::select(empty, Vec3A::INFINITY, cost);
         }
         let active = scale.cmpne(Vec3A::ZERO);
-        let (mut lo, mut hi) = ([Vec3A::INFINITY; 3], [Vec3A::NEG_INFINITY; 3]);
-        let mut counts = [0u32; 3];
+        let mut side = ([Vec3A::INFINITY; 3], [Vec3A::NEG_INFINITY; 3], [0u32; 3]);
         let (mut best, mut best_bin, mut found) = (Vec3A::ZERO, Vec3A::ZERO, BVec3A::FALSE);
         for (i, &right) in (1..bins).zip(&right_cost[1..bins]) {
-            for (axis, bin) in axis_bins(i - 1).into_iter().enumerate() {
-                lo[axis] = lo[axis].min(bin.bounds.min);
-                hi[axis] = hi[axis].max(bin.bounds.max);
-                counts[axis] += bin.count;
-            }
-            let filled = BVec3A::from(counts.map(|count| count != 0));
-            let cost = areas(lo, hi) * blocks(counts) + right;
+            grow(&mut side, i - 1);
+            let (left, empty) = cost(&side);
+            let (filled, cost) = (!empty, left + right);
             // Per lane, the first candidate is taken and then only cheaper ones, as a
             // scalar `Option` would: a NaN cost stays chosen exactly as it would there.
             let candidate = active & filled & right.is_finite_mask();
