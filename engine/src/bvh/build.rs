@@ -506,10 +506,11 @@ impl Bvh {
         builder.emit(root, refs, &cell_tree, &mut root_scratch, &mut piece);
         piece.flatten_into(&mut self.wide);
         self.root_bounds = extent.bounds;
-        self.prim_indices
-            .par_extend(refs.par_iter().map(PrimRef::index));
         if params.leaf_block > 1 {
-            self.prim_indices = align_leaves(&mut self.wide, &self.prim_indices, params.leaf_block);
+            align_leaves(&mut self.wide, refs, params.leaf_block, &mut self.prim_indices);
+        } else {
+            self.prim_indices
+                .par_extend(refs.par_iter().map(PrimRef::index));
         }
     }
 }
@@ -1064,13 +1065,14 @@ impl Builder {
     }
 }
 
-/// Moves every leaf's slots to start at a multiple of `block`, leaves in slot order,
-/// filling the gaps with [`PADDING`](super::PADDING); rewrites the leaf lanes' first
-/// slots in `wide` and returns the new slot order. The lanes of a node are in slot order
-/// and a subtree's slots are contiguous, so a depth-first walk meets the leaves in slot
-/// order (a sort of them was a fiftieth of a bottom-level build).
-fn align_leaves(wide: &mut [WideNode], prim_indices: &[u32], block: usize) -> Vec<u32> {
-    let mut aligned = Vec::with_capacity(prim_indices.len() + prim_indices.len() / 2);
+/// Writes the primitives of `refs` into `aligned` (empty) in slot order with every
+/// leaf's slots moved to start at a multiple of `block`, filling the gaps with
+/// [`PADDING`](super::PADDING), and rewrites the leaf lanes' first slots in `wide` to
+/// match. The lanes of a node are in slot order and a subtree's slots are contiguous, so
+/// a depth-first walk meets the leaves in slot order (a sort of them was a fiftieth of a
+/// bottom-level build).
+fn align_leaves(wide: &mut [WideNode], refs: &[PrimRef], block: usize, aligned: &mut Vec<u32>) {
+    aligned.reserve(refs.len() + refs.len() / 2);
     let mut stack = vec![(0usize, 0usize)];
     while let Some((index, lane)) = stack.pop() {
         if lane == WIDTH || !wide[index].is_used(lane) {
@@ -1084,10 +1086,9 @@ fn align_leaves(wide: &mut [WideNode], prim_indices: &[u32], block: usize) -> Ve
             continue;
         }
         node.children[lane] = aligned.len() as u32;
-        aligned.extend_from_slice(&prim_indices[first..first + count]);
+        aligned.extend(refs[first..first + count].iter().map(PrimRef::index));
         aligned.resize(aligned.len().next_multiple_of(block), super::PADDING);
     }
-    aligned
 }
 
 /// Per-axis scale and offset mapping a centroid to a bin; scale 0 marks an
