@@ -887,12 +887,7 @@ impl Builder {
         let bins_per_axis = self.params.bins.min(n.max(2));
         let (scale, min) = bin_transform(cb, bins_per_axis);
         let scale = if self.params.longest_axis_only {
-            let axis = cb.largest_axis();
-            Vec3A::select(
-                glam::BVec3A::new(axis == 0, axis == 1, axis == 2),
-                scale,
-                Vec3A::ZERO,
-            )
+            axis_scale(scale, cb.largest_axis())
         } else {
             scale
         };
