@@ -10,7 +10,7 @@
 use super::wide::{WIDTH, WideNode};
 use super::{Bvh, MAX_DEPTH};
 use crate::math::Aabb;
-use glam::{BVec3A, Mat3A, Vec3A, Vec4};
+use glam::{BVec3A, Mat3A, UVec4, Vec3A, Vec4};
 use rayon::prelude::*;
 
 /// Settings of the builder; see the presets.
@@ -150,6 +150,8 @@ const MAX_BINS: usize = 32;
 const FORCED_MEDIAN_DEPTH: usize = MAX_DEPTH - 33;
 /// Nodes at least this large bin their primitives in parallel.
 const PARALLEL_BINNING: usize = 1 << 16;
+/// Nodes of at least this many primitives bin every other one into spare bins.
+const PAIRED_BINNING: usize = 64;
 /// The top level's [`BuildParams::grid_from`]: builds of at least this many instances
 /// sort them into grid cells first.
 pub const GRID_FROM: usize = 1 << 15;
@@ -204,19 +206,47 @@ impl PrimRef {
     }
 }
 
-/// The primitives binned into one bin: their box and number. Their centroids' box is
-/// left to the partition (see [`partition`]): keeping it here doubled the stores per
-/// primitive and bin, and binning is store-bound.
-#[derive(Clone, Copy)]
-struct Bin {
-    bounds: Aabb,
-    count: u32,
+/// A node's bins on the three axes: each bin's box, axis by axis, and each bin's number
+/// of primitives with the axes in the lanes, so the SAH sweep reads a bin's three counts
+/// as one vector. Their centroids' box is left to the partition (see [`partition`]):
+/// keeping it here doubled the stores per primitive and bin, and binning is store-bound.
+/// Fixed-size, so bin indices masked below [`MAX_BINS`] index without bounds checks.
+#[derive(Clone)]
+struct Bins {
+    bounds: [[Aabb; MAX_BINS]; 3],
+    counts: [[u32; 4]; MAX_BINS],
 }
 
-const EMPTY_BIN: Bin = Bin {
-    bounds: Aabb::EMPTY,
-    count: 0,
-};
+impl Bins {
+    fn new() -> Box<Bins> {
+        Box::new(Bins {
+            bounds: [[Aabb::EMPTY; MAX_BINS]; 3],
+            counts: [[0; 4]; MAX_BINS],
+        })
+    }
+
+    /// Empties the first `bins` bins of every axis.
+    fn clear(&mut self, bins: usize) {
+        for axis in &mut self.bounds {
+            axis[..bins].fill(Aabb::EMPTY);
+        }
+        self.counts[..bins].fill([0; 4]);
+    }
+
+    /// Adds `other`'s first `bins` bins of every axis into these.
+    fn merge(&mut self, other: &Bins, bins: usize) {
+        for (axis, other_axis) in self.bounds.iter_mut().zip(&other.bounds) {
+            for (bin, other_bin) in axis[..bins].iter_mut().zip(&other_axis[..bins]) {
+                *bin = bin.union(*other_bin);
+            }
+        }
+        for (counts, other_counts) in self.counts[..bins].iter_mut().zip(&other.counts) {
+            for (count, other_count) in counts.iter_mut().zip(other_counts) {
+                *count += other_count;
+            }
+        }
+    }
+}
 
 /// A node's primitives: their box and the box of their centroids.
 #[derive(Clone, Copy, Debug)]
@@ -270,7 +300,9 @@ enum Split {
 /// Per-subtree scratch memory, so a node pays only for the bins it uses instead of
 /// initialising (and copying) fixed worst-case arrays: that cost dominated small nodes.
 struct Scratch {
-    bins: Vec<Bin>,
+    bins: Box<Bins>,
+    /// Bins for every other primitive of a large node (see [`fill_bins`]).
+    spare_bins: Box<Bins>,
     /// The SAH sweep's costs of the right sides, the three axes in the lanes.
     right_cost: Vec<Vec3A>,
     /// Each primitive's bin on the one axis binned, in the node's order, written by
@@ -308,7 +340,8 @@ impl Scratch {
 
     fn new() -> Self {
         Self {
-            bins: vec![EMPTY_BIN; 3 * MAX_BINS],
+            bins: Bins::new(),
+            spare_bins: Bins::new(),
             right_cost: vec![Vec3A::ZERO; MAX_BINS],
             prim_bins: Vec::new(),
             lanes: Vec::new(),
@@ -846,6 +879,25 @@ impl Builder {
         }
     }
 
+    /// [`blocks`](Self::blocks) of the counts in the first three lanes, all at once (the
+    /// SAH sweep's); arbitrary for a count of 0, whose side the sweep masks as empty.
+    #[inline]
+    fn nonempty_blocks(&self, counts: UVec4) -> Vec3A {
+        let block = self.params.leaf_block;
+        let blocks = if block.is_power_of_two() && block <= 1 << 31 {
+            // ⌈c / block⌉ = (c − 1) / block + 1 for c ≥ 1, without overflow.
+            (counts.wrapping_sub(UVec4::ONE) >> block.trailing_zeros()).wrapping_add(UVec4::ONE)
+        } else {
+            UVec4::from_array(
+                counts
+                    .to_array()
+                    .map(|c| (c as usize).div_ceil(block) as u32),
+            )
+        };
+        // Rounded as `blocks` rounds its count.
+        Vec3A::from_vec4(blocks.as_vec4())
+    }
+
     fn find_split(
         &self,
         refs: &[PrimRef],
@@ -891,7 +943,6 @@ impl Builder {
         } else {
             scale
         };
-        let all_bins = &mut scratch.bins[..3 * bins_per_axis];
         // Only a one-axis partition reads the recorded bins (see `fill_bins`); a node
         // binned in parallel gets the slots in any case, so its chunks zip with them
         // (over three axes `fill_bins` leaves them unwritten).
@@ -906,22 +957,45 @@ impl Builder {
         };
         if n >= PARALLEL_BINNING {
             const CHUNK: usize = 16 * 1024;
+            let empty = || {
+                let mut bins = Bins::new();
+                bins.clear(bins_per_axis);
+                bins
+            };
             let merged = refs
                 .par_chunks(CHUNK)
                 .zip(prim_bins.par_chunks_mut(CHUNK))
                 .map(|(chunk, chunk_bins)| {
-                    let mut local = vec![EMPTY_BIN; 3 * bins_per_axis];
-                    fill_bins(chunk, scale, min, bins_per_axis, &mut local, chunk_bins);
+                    let (mut local, mut spare) = (empty(), Bins::new());
+                    let spare = Some(&mut *spare);
+                    fill_bins(
+                        chunk,
+                        scale,
+                        min,
+                        bins_per_axis,
+                        &mut local,
+                        spare,
+                        chunk_bins,
+                    );
                     local
                 })
-                .reduce(|| vec![EMPTY_BIN; 3 * bins_per_axis], merge_bins);
-            all_bins.copy_from_slice(&merged);
+                .reduce(empty, |mut a, b| {
+                    a.merge(&b, bins_per_axis);
+                    a
+                });
+            scratch.bins = merged;
         } else {
-            // Only the axes binned: the top level bins one.
-            for axis in (0..3).filter(|&axis| scale[axis] != 0.0) {
-                all_bins[axis * bins_per_axis..(axis + 1) * bins_per_axis].fill(EMPTY_BIN);
-            }
-            fill_bins(refs, scale, min, bins_per_axis, all_bins, prim_bins);
+            scratch.bins.clear(bins_per_axis);
+            let spare = (n >= PAIRED_BINNING).then_some(&mut *scratch.spare_bins);
+            fill_bins(
+                refs,
+                scale,
+                min,
+                bins_per_axis,
+                &mut scratch.bins,
+                spare,
+                prim_bins,
+            );
         }
 
         let Some((cost, axis, bin)) = self.sweep(scratch, bins_per_axis, scale) else {
@@ -931,8 +1005,8 @@ impl Builder {
                 Split::Median
             };
         };
-        let bins = &scratch.bins[axis * bins_per_axis..(axis + 1) * bins_per_axis];
-        let side = |bins: &[Bin]| bins.iter().fold(Aabb::EMPTY, |e, b| e.union(b.bounds));
+        let bins = &scratch.bins.bounds[axis][..bins_per_axis];
+        let side = |bins: &[Aabb]| bins.iter().fold(Aabb::EMPTY, |e, b| e.union(*b));
         let (left, right) = (side(&bins[..bin]), side(&bins[bin..]));
         let area = extent.bounds.surface_area();
         let split_cost = self.params.traversal_cost * area + cost;
@@ -972,21 +1046,23 @@ impl Builder {
         // operations in the same order as `Aabb::surface_area`, whose boxes with
         // primitives are not empty, so trees do not depend on the sweep being
         // vectorised) and whether each side is empty.
-        let mut side = ([Vec3A::INFINITY; 3], [Vec3A::NEG_INFINITY; 3], [0u32; 3]);
-        let grow = |(lo, hi, counts): &mut ([Vec3A; 3], [Vec3A; 3], [u32; 3]), i: usize| {
+        let mut side = ([Vec3A::INFINITY; 3], [Vec3A::NEG_INFINITY; 3], UVec4::ZERO);
+        let grow = |(lo, hi, counts): &mut ([Vec3A; 3], [Vec3A; 3], UVec4), i: usize| {
             for axis in 0..3 {
-                let bin = &all_bins[axis * bins + i];
-                lo[axis] = lo[axis].min(bin.bounds.min);
-                hi[axis] = hi[axis].max(bin.bounds.max);
-                counts[axis] += bin.count;
+                let bin = &all_bins.bounds[axis][i];
+                lo[axis] = lo[axis].min(bin.min);
+                hi[axis] = hi[axis].max(bin.max);
             }
+            *counts += UVec4::from_array(all_bins.counts[i]);
         };
-        let cost = |(lo, hi, counts): &([Vec3A; 3], [Vec3A; 3], [u32; 3])| {
+        let cost = |(lo, hi, counts): &([Vec3A; 3], [Vec3A; 3], UVec4)| {
             let e = Mat3A::from_cols(hi[0] - lo[0], hi[1] - lo[1], hi[2] - lo[2]).transpose();
             let (x, y, z) = (e.x_axis, e.y_axis, e.z_axis);
-            let blocks = Vec3A::from_array(counts.map(|count| self.blocks(count as usize)));
-            let empty = BVec3A::from(counts.map(|count| count == 0));
-            ((x * y + y * z + z * x) * 2.0 * blocks, empty)
+            let empty = Vec3A::from_vec4(counts.as_vec4()).cmpeq(Vec3A::ZERO);
+            (
+                (x * y + y * z + z * x) * 2.0 * self.nonempty_blocks(*counts),
+                empty,
+            )
         };
         let right_cost = &mut scratch.right_cost;
         for i in (1..bins).rev() {
@@ -995,7 +1071,7 @@ impl Builder {
             right_cost[i] = Vec3A::select(empty, Vec3A::INFINITY, cost);
         }
         let active = scale.cmpne(Vec3A::ZERO);
-        let mut side = ([Vec3A::INFINITY; 3], [Vec3A::NEG_INFINITY; 3], [0u32; 3]);
+        let mut side = ([Vec3A::INFINITY; 3], [Vec3A::NEG_INFINITY; 3], UVec4::ZERO);
         let (mut best, mut best_bin, mut found) = (Vec3A::ZERO, Vec3A::ZERO, BVec3A::FALSE);
         for (i, &right) in (1..bins).zip(&right_cost[1..bins]) {
             grow(&mut side, i - 1);
@@ -1203,20 +1279,24 @@ fn bin_indices(centroid: Vec3A, scale: Vec3A, min: Vec3A, bins: usize) -> [usize
     let k = ((centroid - min) * scale - Vec3A::splat(0.5))
         .clamp(Vec3A::ZERO, Vec3A::splat(bins as f32 - 1.0))
         + Vec3A::splat(MAGIC);
-    k.to_array().map(|v| (v.to_bits() & 0x7f_ffff) as usize)
+    // The clamp keeps the bins below `MAX_BINS`: masking with it only tells the compiler.
+    k.to_array()
+        .map(|v| (v.to_bits() as usize) & (MAX_BINS - 1))
 }
 
 /// Adds each primitive to its bin on every axis; `out` holds `bins` bins per axis. When
 /// one axis is binned and `prim_bins` has an entry per primitive, `prim_bins[i][axis]`
 /// receives primitive `i`'s bin, so the partition that follows reads it instead of
 /// computing it again (over three axes, recording the bins cost more instructions than
-/// recomputing the one chosen).
+/// recomputing the one chosen). Over three axes, `spare` (when given) takes every other
+/// primitive, and is merged into `out` at the end.
 fn fill_bins(
     refs: &[PrimRef],
     scale: Vec3A,
     min: Vec3A,
     bins: usize,
-    out: &mut [Bin],
+    out: &mut Bins,
+    spare: Option<&mut Bins>,
     prim_bins: &mut [[u8; 3]],
 ) {
     // Axes with scale 0 cannot be split: skip their bins.
@@ -1224,12 +1304,11 @@ fn fill_bins(
     if active.iter().filter(|&&a| a).count() == 1 {
         let axis = active.iter().position(|&a| a).unwrap_or(0);
         // One axis (the top level bins only the longest): one bin per primitive.
-        let out = &mut out[axis * bins..(axis + 1) * bins];
         let mut add = |r: &PrimRef| {
             let k = bin_on_axis(r.centroid(), scale, min, bins);
-            let b = &mut out[k];
-            b.bounds = b.bounds.union(r.bounds());
-            b.count += 1;
+            let b = &mut out.bounds[axis][k];
+            *b = b.union(r.bounds());
+            out.counts[k][axis] += 1;
             k as u8
         };
         if prim_bins.len() == refs.len() {
@@ -1243,24 +1322,32 @@ fn fill_bins(
         }
         return;
     }
-    for r in refs {
+    // Every axis, also one that cannot be split (its primitives all land in its first
+    // bin, which the sweep then ignores): no test per axis and primitive.
+    let add = |out: &mut Bins, r: &PrimRef| {
         let k = bin_indices(r.centroid(), scale, min, bins);
-        for axis in 0..3 {
-            if active[axis] {
-                let b = &mut out[axis * bins + k[axis]];
-                b.bounds = b.bounds.union(r.bounds());
-                b.count += 1;
-            }
+        let bounds = r.bounds();
+        for (axis, &k) in k.iter().enumerate() {
+            let b = &mut out.bounds[axis][k];
+            *b = b.union(bounds);
+            out.counts[k][axis] += 1;
         }
+    };
+    match spare {
+        // Neighbouring primitives mostly share their bins, so each waited for the
+        // previous one's store to its bin: every other one goes into the spare bins.
+        Some(spare) => {
+            spare.clear(bins);
+            let (pairs, rest) = refs.as_chunks::<2>();
+            for [a, b] in pairs {
+                add(out, a);
+                add(spare, b);
+            }
+            rest.iter().for_each(|r| add(out, r));
+            out.merge(spare, bins);
+        }
+        None => refs.iter().for_each(|r| add(out, r)),
     }
-}
-
-fn merge_bins(mut a: Vec<Bin>, b: Vec<Bin>) -> Vec<Bin> {
-    for (ba, bb) in a.iter_mut().zip(&b) {
-        ba.bounds = ba.bounds.union(bb.bounds);
-        ba.count += bb.count;
-    }
-    a
 }
 
 /// Moves the primitives that `goes_left(i, centroid)` (`i` their position before the
