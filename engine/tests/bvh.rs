@@ -704,6 +704,28 @@ fn grid_cell_trees_match_brute_force() {
             );
             let rays: Vec<Ray> = (0..400).map(|_| random_ray(&mut rng, 70.0)).collect();
             check_mesh_against_brute_force(mesh.clone(), &rays, params);
+            // Boxes that cannot be hit are left out on the way into the cells, and the
+            // rest are sorted in as without them.
+            let mut with_unusable = bounds.clone();
+            let unusable = [3, 4_000, n - 1];
+            with_unusable[unusable[0]] = Aabb::EMPTY;
+            with_unusable[unusable[1]].max.y = f32::NAN;
+            with_unusable[unusable[2]].min.z = f32::NEG_INFINITY;
+            let gridded = Bvh::build(&with_unusable, params);
+            gridded.validate(&with_unusable).unwrap();
+            let held = gridded
+                .prim_indices
+                .iter()
+                .filter(|&&p| p != PADDING)
+                .count();
+            assert_eq!(
+                held,
+                n - unusable.len(),
+                "{level} level, {name}: primitives held"
+            );
+            for slot in unusable {
+                assert!(!gridded.prim_indices.contains(&(slot as u32)));
+            }
         }
     }
     // The preset itself: cells from BOTTOM_GRID_FROM triangles on, none below.

@@ -483,45 +483,57 @@ impl Bvh {
             ..params
         };
         let usable = |b: &Aabb| !b.is_empty() && b.min.is_finite() && b.max.is_finite();
-        let refs = &mut scratch.refs;
-        refs.clear();
-        // A filtered parallel extend goes through a list of pieces and a second copy:
-        // take the direct, indexed one whenever every box is usable.
-        if prim_bounds.par_iter().all(usable) {
-            refs.par_extend(
-                prim_bounds
-                    .par_iter()
-                    .enumerate()
-                    .map(|(i, b)| PrimRef::new(b, i as u32)),
-            );
-        } else {
-            refs.par_extend(
-                prim_bounds
-                    .par_iter()
-                    .enumerate()
-                    .filter(|(_, b)| usable(b))
-                    .map(|(i, b)| PrimRef::new(b, i as u32)),
-            );
-        }
+        let prim = |b: &Aabb, i: usize| usable(b).then(|| PrimRef::new(b, i as u32));
+        // One pass over the boxes for the usable ones' number and extent (the index in a
+        // primitive's `w` lane does not enter its box or centroid).
+        let (usable_count, extent) = prim_bounds
+            .par_chunks(16 * 1024)
+            .map(|chunk| {
+                chunk
+                    .iter()
+                    .filter(|b| usable(b))
+                    .fold((0, Extent::EMPTY), |(n, e), b| {
+                        (n + 1, e.with(&PrimRef::new(b, 0)))
+                    })
+            })
+            .reduce(|| (0, Extent::EMPTY), |(n, e), (m, f)| (n + m, e.union(f)));
         self.wide.clear();
         self.prim_indices.clear();
         self.root_bounds = Aabb::EMPTY;
-        if refs.is_empty() {
+        if usable_count == 0 {
             return;
         }
-        let extent = refs
-            .par_chunks(16 * 1024)
-            .map(Extent::of)
-            .reduce(|| Extent::EMPTY, Extent::union);
         let builder = Builder { params };
-        let gridded = params.grid_cell > 0 && refs.len() >= params.grid_from;
+        let gridded = params.grid_cell > 0 && usable_count >= params.grid_from;
+        // Sorted into grid cells straight from the boxes, without the list in input
+        // order first (a pass over the primitives and their memory less).
         let cell_tree = if gridded {
-            builder.sort_into_cells(refs, &mut scratch.sorted, &extent.centroids)
+            let sorted = &mut scratch.sorted;
+            builder.sort_into_cells(prim_bounds, prim, usable_count, sorted, &extent.centroids)
         } else {
             Vec::new()
         };
         // Sorted into cells (not a grid of one): the cells' tree splits the root.
         let refs = if cell_tree.is_empty() {
+            let refs = &mut scratch.refs;
+            refs.clear();
+            // A filtered parallel extend goes through a list of pieces and a second
+            // copy: take the direct, indexed one whenever every box is usable.
+            if usable_count == prim_bounds.len() {
+                refs.par_extend(
+                    prim_bounds
+                        .par_iter()
+                        .enumerate()
+                        .map(|(i, b)| PrimRef::new(b, i as u32)),
+                );
+            } else {
+                refs.par_extend(
+                    prim_bounds
+                        .par_iter()
+                        .enumerate()
+                        .filter_map(|(i, b)| prim(b, i)),
+                );
+            }
             refs.as_mut_slice()
         } else {
             scratch.sorted.as_mut_slice()
@@ -1398,21 +1410,25 @@ struct CellSplit {
 }
 
 impl Builder {
-    /// Sorts `refs` into `out` by the cell of a grid over `centroids` whose cells hold
-    /// `grid_cell` primitives on average (cubes, as many along each axis as its extent
-    /// takes), the cells in the order of the tree [`split_cells`](Self::split_cells)
-    /// makes over them and the primitives of a cell in their order in `refs`; returns
+    /// Sorts the primitives `prim(item, index)` makes of `items` (`prims` of them; an
+    /// item that makes none is left out) into `out` by the cell of a grid over
+    /// `centroids` whose cells hold `grid_cell` primitives on average (cubes, as many
+    /// along each axis as its extent takes), the cells in the order of the tree
+    /// [`split_cells`](Self::split_cells) makes over them and the primitives of a cell
+    /// in their items' order; returns
     /// that tree, its root first, or nothing (and `out` untouched) when the primitives
     /// fill fewer than two cells.
-    fn sort_into_cells(
+    fn sort_into_cells<T: Sync>(
         &self,
-        refs: &[PrimRef],
+        items: &[T],
+        prim: impl Fn(&T, usize) -> Option<PrimRef> + Sync,
+        prims: usize,
         out: &mut Vec<PrimRef>,
         centroids: &Aabb,
     ) -> Vec<CellSplit> {
         let extent = centroids.extent();
         // Cells of fewer than 64 would cost more pieces and bookkeeping than they save.
-        let wanted = (refs.len() / self.params.grid_cell.max(64)).max(1);
+        let wanted = (prims / self.params.grid_cell.max(64)).max(1);
         let cells_along = |side: f32| -> [usize; 3] {
             [0, 1, 2].map(|axis| {
                 let cells = (extent[axis] / side).ceil();
@@ -1447,16 +1463,23 @@ impl Builder {
         // (cell, chunk) pair's place in `out` in the tree's cell order, then each chunk
         // moves its primitives into its places, all chunks at once. At most 16
         // chunks, so the pieces below number at most 16 per cell.
-        let chunk_size = refs.len().div_ceil(16).max(1 << 12);
-        let chunks: Vec<(Vec<u32>, Vec<u32>, Vec<Extent>)> = refs
+        let chunk_size = items.len().div_ceil(16).max(1 << 12);
+        let chunks: Vec<(Vec<u32>, Vec<u32>, Vec<Extent>)> = items
             .par_chunks(chunk_size)
-            .map(|chunk| {
-                let cells: Vec<u32> = chunk.iter().map(cell_of).collect();
+            .enumerate()
+            .map(|(index, chunk)| {
+                let base = index * chunk_size;
+                let mut cells = Vec::with_capacity(chunk.len());
                 let mut counts = vec![0u32; count];
                 let mut extents = vec![Extent::EMPTY; count];
-                for (r, &cell) in chunk.iter().zip(&cells) {
-                    counts[cell as usize] += 1;
-                    extents[cell as usize] = extents[cell as usize].with(r);
+                for (i, item) in chunk.iter().enumerate() {
+                    let cell = prim(item, base + i).map_or(u32::MAX, |r| {
+                        let cell = cell_of(&r);
+                        counts[cell as usize] += 1;
+                        extents[cell as usize] = extents[cell as usize].with(&r);
+                        cell
+                    });
+                    cells.push(cell);
                 }
                 (cells, counts, extents)
             })
@@ -1480,7 +1503,7 @@ impl Builder {
         self.split_cells(&mut cells, &mut tree, 0);
         // Filled on all threads: on fresh memory a serial fill was a tenth of the sort.
         out.clear();
-        out.par_extend(rayon::iter::repeat_n(refs[0], refs.len()));
+        out.par_extend(rayon::iter::repeat_n(PrimRef::new(&Aabb::EMPTY, 0), prims));
         // Cut `out` into one piece per cell and chunk, handed to the chunks.
         let mut places: Vec<Vec<&mut [PrimRef]>> = (0..chunks.len())
             .map(|_| (0..count).map(|_| Default::default()).collect())
@@ -1494,15 +1517,20 @@ impl Builder {
                 rest = tail;
             }
         }
-        refs.par_chunks(chunk_size)
+        items
+            .par_chunks(chunk_size)
+            .enumerate()
             .zip(places.par_iter_mut())
             .zip(chunks.par_iter())
-            .for_each(|((chunk, pieces), (cells, _, _))| {
+            .for_each(|(((index, chunk), pieces), (cells, _, _))| {
+                let base = index * chunk_size;
                 let mut filled = vec![0usize; count];
-                for (r, &cell) in chunk.iter().zip(cells) {
-                    let cell = cell as usize;
-                    pieces[cell][filled[cell]] = *r;
-                    filled[cell] += 1;
+                for (i, (item, &cell)) in chunk.iter().zip(cells).enumerate() {
+                    if let Some(r) = prim(item, base + i) {
+                        let cell = cell as usize;
+                        pieces[cell][filled[cell]] = r;
+                        filled[cell] += 1;
+                    }
                 }
             });
         tree
