@@ -218,6 +218,7 @@ struct Bins {
 }
 
 impl Bins {
+    /// Empty bins, all of them (so also cleared for any number of bins).
     fn new() -> Box<Bins> {
         Box::new(Bins {
             bounds: [[Aabb::EMPTY; MAX_BINS]; 3],
@@ -969,16 +970,11 @@ impl Builder {
         };
         if n >= PARALLEL_BINNING {
             const CHUNK: usize = 16 * 1024;
-            let empty = || {
-                let mut bins = Bins::new();
-                bins.clear(bins_per_axis);
-                bins
-            };
             let merged = refs
                 .par_chunks(CHUNK)
                 .zip(prim_bins.par_chunks_mut(CHUNK))
                 .map(|(chunk, chunk_bins)| {
-                    let (mut local, mut spare) = (empty(), Bins::new());
+                    let (mut local, mut spare) = (Bins::new(), Bins::new());
                     let spare = Some(&mut *spare);
                     fill_bins(
                         chunk,
@@ -991,7 +987,7 @@ impl Builder {
                     );
                     local
                 })
-                .reduce(empty, |mut a, b| {
+                .reduce(Bins::new, |mut a, b| {
                     a.merge(&b, bins_per_axis);
                     a
                 });
