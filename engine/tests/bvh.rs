@@ -704,8 +704,8 @@ fn grid_cell_trees_match_brute_force() {
             );
             let rays: Vec<Ray> = (0..400).map(|_| random_ray(&mut rng, 70.0)).collect();
             check_mesh_against_brute_force(mesh.clone(), &rays, params);
-            // Boxes that cannot be hit are left out on the way into the cells, and the
-            // rest are sorted in as without them.
+            // Boxes that cannot be hit are left out on the way into the cells, and every
+            // other primitive is held once.
             let mut with_unusable = bounds.clone();
             let unusable = [3, 4_000, n - 1];
             with_unusable[unusable[0]] = Aabb::EMPTY;
