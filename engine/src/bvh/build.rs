@@ -490,12 +490,14 @@ impl Bvh {
         let (usable_count, extent) = prim_bounds
             .par_chunks(16 * 1024)
             .map(|chunk| {
-                chunk
-                    .iter()
-                    .filter(|b| usable(b))
-                    .fold((0, Extent::EMPTY), |(n, e), b| {
-                        (n + 1, e.with(&PrimRef::new(b, 0)))
-                    })
+                let mut found = (0, Extent::EMPTY);
+                for (i, b) in chunk.iter().enumerate() {
+                    prefetch_ahead(chunk, i);
+                    if usable(b) {
+                        found = (found.0 + 1, found.1.with(&PrimRef::new(b, 0)));
+                    }
+                }
+                found
             })
             .reduce(|| (0, Extent::EMPTY), |(n, e), (m, f)| (n + m, e.union(f)));
         self.wide.clear();
@@ -1175,6 +1177,17 @@ fn align_leaves(wide: &mut [WideNode], refs: &[PrimRef], block: usize, aligned: 
     }
 }
 
+/// Asks for `items[i + 32]`: the passes over a build's input boxes stream 32 MB for a
+/// million triangles, and without the hint each waited on the memory of its next box (a
+/// load that missed was half the grid sort's histogram, which took twice a pass of pure
+/// reads). The passes inside the tree work on nodes the caches hold, and go without.
+#[inline(always)]
+fn prefetch_ahead<T>(items: &[T], i: usize) {
+    if let Some(ahead) = items.get(i + 32) {
+        super::simd::prefetch(ahead);
+    }
+}
+
 /// Per-axis scale and offset mapping a centroid to a bin; scale 0 marks an
 /// axis with no extent (nothing to split).
 fn bin_transform(cb: &Aabb, bins: usize) -> (Vec3A, Vec3A) {
@@ -1448,11 +1461,19 @@ impl Builder {
         }
         let scale = Vec3A::new(dims[0] as f32, dims[1] as f32, dims[2] as f32)
             / Vec3A::select(extent.cmpgt(Vec3A::ZERO), extent, Vec3A::ONE);
+        let last_cell = Vec3A::new(dims[0] as f32, dims[1] as f32, dims[2] as f32) - Vec3A::ONE;
         let cell_of = |r: &PrimRef| -> u32 {
-            let k = ((r.centroid() - centroids.min) * scale).max(Vec3A::ZERO);
-            // Saturating casts: a NaN lands in cell 0, a rounding past the end in the last.
-            let [i, j, l] = [0, 1, 2].map(|axis| (k[axis] as usize).min(dims[axis] - 1));
-            ((i * dims[1] + j) * dims[2] + l) as u32
+            // A NaN (an overflowing extent) lands in cell 0, a rounding past the end or an
+            // infinity in the last: as saturating casts would, but floored and clamped in
+            // SIMD, then 2²³ added so each lane's whole number is its low mantissa bits
+            // (three casts a primitive were half of the histogram pass).
+            const MAGIC: f32 = 8_388_608.0; // 2²³
+            let k = (r.centroid() - centroids.min) * scale;
+            // A select, not `max`: what `max` makes of a NaN differs between SSE and NEON.
+            let k = Vec3A::select(k.cmpge(Vec3A::ZERO), k, Vec3A::ZERO);
+            let k = k.floor().min(last_cell) + Vec3A::splat(MAGIC);
+            let [i, j, l] = k.to_array().map(|v| v.to_bits() & 0x7f_ffff);
+            (i * dims[1] as u32 + j) * dims[2] as u32 + l
         };
         // A counting sort in fixed chunks (the same order on any thread count): each
         // chunk's histogram and cell extents, the cells' tree over their totals, every
@@ -1469,6 +1490,7 @@ impl Builder {
                 let mut counts = vec![0u32; count];
                 let mut extents = vec![Extent::EMPTY; count];
                 for (i, item) in chunk.iter().enumerate() {
+                    prefetch_ahead(chunk, i);
                     let cell = prim(item, base + i).map_or(u32::MAX, |r| {
                         let cell = cell_of(&r);
                         counts[cell as usize] += 1;
@@ -1522,6 +1544,7 @@ impl Builder {
                 let base = index * chunk_size;
                 let mut filled = vec![0usize; count];
                 for (i, (item, &cell)) in chunk.iter().zip(cells).enumerate() {
+                    prefetch_ahead(chunk, i);
                     if let Some(r) = prim(item, base + i) {
                         let cell = cell as usize;
                         pieces[cell][filled[cell]] = r;
