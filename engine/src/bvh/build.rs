@@ -1459,13 +1459,13 @@ impl Builder {
         if count == 1 {
             return Vec::new();
         }
-        let scale = Vec3A::new(dims[0] as f32, dims[1] as f32, dims[2] as f32)
-            / Vec3A::select(extent.cmpgt(Vec3A::ZERO), extent, Vec3A::ONE);
-        let last_cell = Vec3A::new(dims[0] as f32, dims[1] as f32, dims[2] as f32) - Vec3A::ONE;
+        let cells_per_axis = Vec3A::new(dims[0] as f32, dims[1] as f32, dims[2] as f32);
+        let scale = cells_per_axis / Vec3A::select(extent.cmpgt(Vec3A::ZERO), extent, Vec3A::ONE);
+        let last_cell = cells_per_axis - Vec3A::ONE;
         let cell_of = |r: &PrimRef| -> u32 {
-            // A NaN (an overflowing extent) lands in cell 0, a rounding past the end or an
-            // infinity in the last: as saturating casts would, but floored and clamped in
-            // SIMD, then 2²³ added so each lane's whole number is its low mantissa bits
+            // A NaN (which finite boxes and extents should not make) lands in cell 0, a
+            // rounding past the end in the last: as saturating casts would, but floored
+            // and clamped in SIMD, then 2²³ added so each lane's whole number is its low mantissa bits
             // (three casts a primitive were half of the histogram pass).
             const MAGIC: f32 = 8_388_608.0; // 2²³
             let k = (r.centroid() - centroids.min) * scale;
