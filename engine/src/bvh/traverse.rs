@@ -77,16 +77,32 @@ pub struct NodeRay {
     /// Some direction component is ±0 (its reciprocal is infinite) or so small that its
     /// reciprocal overflows (then NaN): such slabs get the open treatment.
     pub(super) axis_parallel: bool,
+    /// Per axis, whether the ray meets a box's upper plane first (its direction is
+    /// negative there): the near plane of the slab test, so the kernels read the near and
+    /// far planes directly instead of taking the min and max of both distances.
+    pub(super) near_is_max: [bool; 3],
 }
 
 /// Widening of the far slab distance that makes the box test conservative (Ize 2013,
-/// "Robust BVH Ray Traversal"), so watertight triangle tests are never culled early.
-pub(super) const FAR_SCALE: f32 = 1.0 + 2.0 * gamma(3);
+/// "Robust BVH Ray Traversal": far × (1 + 2γ₃) against the entry distance), so
+/// watertight triangle tests are never culled early. The entry distance is not narrowed
+/// by (1 − 2γ₃) as Ize does: the far side and the limit take that factor instead (see
+/// [`entry_limit`]), which keeps a multiply off the chain from a node's load to the next
+/// node's address. 1 + 6γ₃ covers (1 + 2γ₃)/(1 − 2γ₃) and the roundings of both products.
+pub(super) const FAR_SCALE: f32 = 1.0 + 6.0 * gamma(3);
 
-/// The matching narrowing of the entry distance: rounded up, it could exceed the distance
-/// of a hit on the box's face and prune that box against a farther hit found first (a
-/// closest hit 1 ulp too far; fuzz finding).
-pub(super) const NEAR_SCALE: f32 = 1.0 - 2.0 * gamma(3);
+/// The widening of the closest hit so far that children's entry distances are tested
+/// against: a box whose entry rounded up past a hit on its own face must still be
+/// entered (a closest hit 1 ulp too far without it; fuzz finding). 1 + 4γ₃ covers the
+/// 1/(1 − 2γ₃) of Ize's narrowed entry and the rounding of this product.
+const LIMIT_SCALE: f32 = 1.0 + 4.0 * gamma(3);
+
+/// The bound that children's entry distances must stay below for a closest hit (or ray
+/// end) at `t_max`: a little beyond it, as the slab test's rounding needs.
+#[inline(always)]
+pub(super) fn entry_limit(t_max: f32) -> f32 {
+    t_max * LIMIT_SCALE
+}
 
 impl NodeRay {
     /// Keeps origin and reciprocal direction for the slab tests.
@@ -107,13 +123,15 @@ impl NodeRay {
                 && ray.origin.is_finite()
                 && !ray.direction.is_nan()
                 && ray.direction != Vec3A::ZERO,
+            near_is_max: [inv.x < 0.0, inv.y < 0.0, inv.z < 0.0],
         }
     }
 
-    /// Entry distances of the children and a bitmask of the lanes hit before `t_max`
-    /// (bit `i` for lane `i`), on whichever SIMD kernel this machine runs.
+    /// Entry distances of the children and a bitmask of the lanes whose box the ray may
+    /// enter before `t_max` (bit `i` for lane `i`; a conservative test), on whichever
+    /// SIMD kernel this machine runs.
     pub fn hit_children(&self, node: &WideNode, t_max: f32) -> ([f32; WIDTH], u32) {
-        with_node_kernel!(kernel => kernel.hit_children(self, node, t_max))
+        with_node_kernel!(kernel => kernel.hit_children(self, node, entry_limit(t_max)))
     }
 }
 
@@ -308,6 +326,7 @@ impl Bvh {
         }
         let node_ray = NodeRay::new(ray);
         let mut t_max = ray.t_max;
+        let mut limit = entry_limit(t_max);
         // Counted in registers and added once: `stats` lives in memory across `visit`.
         let (mut nodes, mut primitives) = (0u64, 0u64);
         // The nearest hit child stays in `current` instead of going through the stack:
@@ -324,6 +343,7 @@ impl Bvh {
                 primitives += u64::from(current.count);
                 let (t, stop) = leaves.visit(current.first as usize, current.count as usize, t_max);
                 t_max = t;
+                limit = entry_limit(t);
                 if stop {
                     break 'walk;
                 }
@@ -332,7 +352,7 @@ impl Bvh {
                 // The children's line is read only after the box test: ask for it now.
                 prefetch_children(node);
                 nodes += 1;
-                let (t, mut mask) = kernel.hit_children(&node_ray, node, t_max);
+                let (t, mut mask) = kernel.hit_children(&node_ray, node, limit);
                 let child = |lane: usize| Pending {
                     first: node.children[lane],
                     count: node.counts[lane],
@@ -385,7 +405,7 @@ impl Bvh {
                 let Some(entry) = stack.pop() else {
                     break 'walk;
                 };
-                if entry.t < t_max {
+                if entry.t < limit {
                     current = entry;
                     break;
                 }
