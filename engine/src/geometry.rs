@@ -165,27 +165,34 @@ impl Geometry {
         leaves.found
     }
 
-    /// Calls `test(block, lane)` in slot order for the triangles of the leaf over slots
-    /// `first .. first + count` whose edge-sign check passes (four at a time; the rest
-    /// the exact test would reject) until it returns true; returns whether it did.
+    /// Calls `test(triangle, hit, t_max)` in slot order for the triangles of the leaf
+    /// over slots `first .. first + count` that the ray hits before `*t_max` (the exact
+    /// test, a block of four at a time against the `*t_max` of its start, each lane then
+    /// held to the current one) until it returns true; returns whether it did. `test`
+    /// may lower `*t_max`.
     #[inline(always)]
-    fn for_possible_hits(
+    fn for_hits(
         &self,
         kernel: impl NodeKernel,
         wray: &WatertightRay,
         first: usize,
         count: usize,
-        mut test: impl FnMut(&TriangleBlock, usize) -> bool,
+        t_max: &mut f32,
+        mut test: impl FnMut(u32, &TriangleHit, &mut f32) -> bool,
     ) -> bool {
         let start = first / TRIANGLE_BLOCK;
         let mut remaining = count;
         for block in &self.blocks[start..start + count.div_ceil(TRIANGLE_BLOCK)] {
-            let mut possible = kernel.possible_hits(wray, block, remaining.min(TRIANGLE_BLOCK));
+            let hits = kernel.block_hits(wray, block, remaining.min(TRIANGLE_BLOCK), *t_max);
             remaining = remaining.saturating_sub(TRIANGLE_BLOCK);
-            while possible != 0 {
-                let lane = possible.trailing_zeros() as usize;
-                possible &= possible - 1;
-                if test(block, lane) {
+            let mut lanes = hits.mask;
+            while lanes != 0 {
+                let lane = lanes.trailing_zeros() as usize;
+                lanes &= lanes - 1;
+                let hit = hits.hit(lane);
+                // A lane before this one may have lowered `t_max`: the lane-by-lane
+                // test would have met the lower bound.
+                if hit.t < *t_max && test(block.triangles[lane & 3], &hit, t_max) {
                     return true;
                 }
             }
@@ -229,22 +236,21 @@ impl<'a, K: NodeKernel> LeafRay<'a, K> {
         }
     }
 
-    /// [`Geometry::for_possible_hits`] with the prepared ray: `test(ray, block, lane)`.
+    /// [`Geometry::for_hits`] with the prepared ray.
     #[inline(always)]
-    fn for_possible_hits(
+    fn for_hits(
         &mut self,
         first: usize,
         count: usize,
-        mut test: impl FnMut(&WatertightRay, &TriangleBlock, usize) -> bool,
+        t_max: &mut f32,
+        test: impl FnMut(u32, &TriangleHit, &mut f32) -> bool,
     ) -> bool {
         let ray = self.ray;
         let wray = &*self
             .watertight
             .get_or_insert_with(|| WatertightRay::new(ray));
         self.geometry
-            .for_possible_hits(self.kernel, wray, first, count, |block, lane| {
-                test(wray, block, lane)
-            })
+            .for_hits(self.kernel, wray, first, count, t_max, test)
     }
 }
 
@@ -266,16 +272,13 @@ impl<K: NodeKernel, A: FnMut(u32, &TriangleHit) -> bool> LeafVisit for ClosestLe
             leaving,
             best,
         } = self;
-        leaf.for_possible_hits(first, count, |wray, block, lane| {
-            let triangle = block.triangles[lane];
-            if triangle == *leaving {
-                return false;
-            }
-            if let Some(hit) = wray.intersect_lane(block, lane, t_max)
-                && accept(triangle, &hit)
-            {
-                *best = Some(GeometryHit { triangle, hit });
-                t_max = hit.t;
+        leaf.for_hits(first, count, &mut t_max, |triangle, hit, t_max| {
+            if triangle != *leaving && accept(triangle, hit) {
+                *best = Some(GeometryHit {
+                    triangle,
+                    hit: *hit,
+                });
+                *t_max = hit.t;
             }
             false
         });
@@ -307,12 +310,9 @@ impl<K: NodeKernel, A: FnMut(u32, &TriangleHit) -> bool> LeafVisit for AnyLeaves
             leaving,
             found,
         } = self;
-        *found = leaf.for_possible_hits(first, count, |wray, block, lane| {
-            let triangle = block.triangles[lane];
-            triangle != *leaving
-                && wray
-                    .intersect_lane(block, lane, t_max)
-                    .is_some_and(|hit| accept(triangle, &hit))
+        let mut limit = t_max;
+        *found = leaf.for_hits(first, count, &mut limit, |triangle, hit, _| {
+            triangle != *leaving && accept(triangle, hit)
         });
         (t_max, *found)
     }

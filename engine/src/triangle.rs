@@ -81,6 +81,45 @@ pub struct TriangleHit {
     pub barycentrics: Vec3A,
 }
 
+/// The exact test's results on the four lanes of a [`TriangleBlock`]: bit `i` of `mask`
+/// is set when lane `i` is hit, and its hit is [`hit(i)`](Self::hit).
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
+pub struct BlockHits {
+    /// The lanes hit.
+    pub mask: u32,
+    /// Each lane's hit distance (meaningful where `mask` is set).
+    pub t: [f32; 4],
+    /// Each lane's barycentric weights, one array per vertex.
+    pub barycentrics: [[f32; 4]; 3],
+}
+
+impl BlockHits {
+    /// The hit of lane `lane`.
+    #[inline(always)]
+    pub fn hit(&self, lane: usize) -> TriangleHit {
+        let lane = lane & 3;
+        TriangleHit {
+            t: self.t[lane],
+            barycentrics: Vec3A::new(
+                self.barycentrics[0][lane],
+                self.barycentrics[1][lane],
+                self.barycentrics[2][lane],
+            ),
+        }
+    }
+
+    /// Records `hit` as lane `lane`'s.
+    #[inline(always)]
+    fn set(&mut self, lane: usize, hit: &TriangleHit) {
+        let lane = lane & 3;
+        self.mask |= 1 << lane;
+        self.t[lane] = hit.t;
+        for (vertex, weights) in self.barycentrics.iter_mut().enumerate() {
+            weights[lane] = hit.barycentrics[vertex];
+        }
+    }
+}
+
 impl WatertightRay {
     /// Prepares `ray` (its direction must be non-zero and finite).
     #[inline]
@@ -179,10 +218,7 @@ impl WatertightRay {
     /// cleared bit is a lane the exact test rejects. Only set lanes need
     /// [`intersect_lane`](Self::intersect_lane). There is no error margin leaving lanes
     /// undecided, as in the f32 pass of [`misses_certainly`](Self::misses_certainly).
-    /// This is the portable reference; traversal runs the node kernel's version
-    /// (`NodeKernel::possible_hits`), four lanes per register with AVX2, bit for bit the
-    /// same. (Checking there also that the hit lies ahead, before `t_max`, halved the
-    /// lanes sent on but cost more per block than it saved: +1.1 % instructions.)
+    /// [`block_hits`](Self::block_hits) starts with it.
     pub fn possible_hits(&self, block: &TriangleBlock, lanes: usize) -> u32 {
         let mut mask = 0;
         for lane in 0..lanes.min(4) {
@@ -191,6 +227,29 @@ impl WatertightRay {
             mask |= u32::from(!passes_outside(edges)) << lane;
         }
         mask
+    }
+
+    /// [`intersect_lane`](Self::intersect_lane) on each of the first `lanes` lanes of
+    /// `block` that [`possible_hits`](Self::possible_hits) lets through, all against
+    /// `t_max`. The portable reference of `NodeKernel::block_hits`, which the AVX2 kernel
+    /// computes four lanes per register, bit for bit the same.
+    pub fn block_hits(&self, block: &TriangleBlock, lanes: usize, t_max: f32) -> BlockHits {
+        let mut hits = BlockHits::default();
+        let mut possible = self.possible_hits(block, lanes);
+        while possible != 0 {
+            let lane = possible.trailing_zeros() as usize;
+            possible &= possible - 1;
+            if let Some(hit) = self.intersect_lane(block, lane, t_max) {
+                hits.set(lane, &hit);
+            }
+        }
+        hits
+    }
+
+    /// The shear constant of the z axis (1 / the direction's largest component), in f64.
+    #[inline(always)]
+    pub(crate) fn shear_z(&self) -> f64 {
+        f64::from(self.shear.z)
     }
 
     /// What the block check needs: the axis order `(kx, ky, kz)`, the origin in that
@@ -357,7 +416,7 @@ const MIN_RELIABLE_BOUND: f32 = 7.888_609e-31;
 
 /// pbrt's γ(n) = nε/(1 − nε) for f64 arithmetic.
 #[inline]
-fn gamma64(n: i32) -> f64 {
+pub(crate) fn gamma64(n: i32) -> f64 {
     let e = f64::EPSILON * 0.5;
     (f64::from(n) * e) / (1.0 - f64::from(n) * e)
 }
