@@ -63,7 +63,7 @@ pub trait NodeKernel: Copy {
 
     /// Entry distances of the children and a bitmask of the lanes whose box the ray
     /// enters (conservatively) with an entry distance below `limit` (bit `i` for lane
-    /// `i`): `limit` is a closest hit's [`entry_limit`](super::traverse::entry_limit).
+    /// `i`): `limit` is a closest hit widened for the slab test's rounding (`entry_limit`).
     fn hit_children(self, ray: &NodeRay, node: &WideNode, limit: f32) -> ([f32; WIDTH], u32);
 
     /// [`WatertightRay::block_hits`] on this kernel, bit for bit: the exact test on the
