@@ -117,8 +117,9 @@ impl NodeKernel for Portable {
     }
 }
 
-/// Lanes `first .. first + 4` of the slab test. The operations and their order are
-/// those of the AVX2 kernel, so both give the same bits.
+/// Lanes `first .. first + 4` of the slab test, with the same bits as the AVX2 kernel:
+/// the same operations in the same order, except that AVX2 reads each axis's near plane
+/// by the direction's sign where that equals the min and max taken here.
 #[inline(always)]
 fn hit_half(ray: &NodeRay, node: &WideNode, first: usize, limit: f32) -> (Vec4, u32) {
     let lanes = |a: &[f32; WIDTH]| Vec4::from_slice(&a[first..first + 4]);
