@@ -302,6 +302,8 @@ struct AnyLeaves<'a, K, A> {
 }
 
 impl<K: NodeKernel, A: FnMut(u32, &TriangleHit) -> bool> LeafVisit for AnyLeaves<'_, K, A> {
+    const ANY_HIT: bool = true;
+
     #[inline(always)]
     fn visit(&mut self, first: usize, count: usize, t_max: f32) -> (f32, bool) {
         let Self {

@@ -141,6 +141,14 @@ impl NodeRay {
 /// traversal loop (a large closure stays a call, and outside the AVX2 function it is
 /// compiled without AVX).
 pub trait LeafVisit {
+    /// True for an any-hit visit, which never shortens the ray: the traversal then
+    /// visits a node's hit leaves as soon as its box test finds them and keeps only
+    /// interior nodes pending, with no sort and no branch on whether the next entry is a
+    /// leaf (the branch a simulated predictor misses most). A closest-hit visit gets a
+    /// node's hit children nearest first. An any-hit visit's returned `t_max` is not
+    /// read.
+    const ANY_HIT: bool = false;
+
     /// Tests one leaf; returns the new `t_max` and whether to stop.
     fn visit(&mut self, first: usize, count: usize, t_max: f32) -> (f32, bool);
 
@@ -213,12 +221,16 @@ impl Stack {
 
 /// The leaf visit of the slot-by-slot traversals: `visit` runs over a leaf's slots,
 /// `prefetch(slot)` asks for a put-off leaf's primitives.
-struct SlotLeaves<V, P> {
+struct SlotLeaves<V, P, const ANY_HIT: bool> {
     visit: V,
     prefetch: P,
 }
 
-impl<V: FnMut(usize, usize, f32) -> (f32, bool), P: Fn(usize)> LeafVisit for SlotLeaves<V, P> {
+impl<V: FnMut(usize, usize, f32) -> (f32, bool), P: Fn(usize), const ANY_HIT: bool> LeafVisit
+    for SlotLeaves<V, P, ANY_HIT>
+{
+    const ANY_HIT: bool = ANY_HIT;
+
     #[inline(always)]
     fn visit(&mut self, first: usize, count: usize, t_max: f32) -> (f32, bool) {
         (self.visit)(first, count, t_max)
@@ -265,7 +277,12 @@ impl Bvh {
             }
             (t_max, false)
         };
-        kernel.traverse(self, ray, stats, &mut SlotLeaves { visit, prefetch });
+        kernel.traverse(
+            self,
+            ray,
+            stats,
+            &mut SlotLeaves::<_, _, false> { visit, prefetch },
+        );
         t_max
     }
 
@@ -296,7 +313,12 @@ impl Bvh {
             found = (first..first + count).any(|slot| test(slot, t));
             (t, found)
         };
-        kernel.traverse(self, ray, stats, &mut SlotLeaves { visit, prefetch });
+        kernel.traverse(
+            self,
+            ray,
+            stats,
+            &mut SlotLeaves::<_, _, true> { visit, prefetch },
+        );
         found
     }
 
@@ -314,15 +336,18 @@ impl Bvh {
     /// The shared loop over the wide tree: [`LeafVisit::visit`] for each leaf the ray
     /// reaches, with the box tests of `kernel`.
     #[inline(always)]
-    pub(super) fn traverse_with(
+    pub(super) fn traverse_with<L: LeafVisit>(
         &self,
         kernel: impl NodeKernel,
         ray: &Ray,
         stats: &mut TraversalStats,
-        leaves: &mut impl LeafVisit,
+        leaves: &mut L,
     ) {
         if self.wide.is_empty() {
             return;
+        }
+        if L::ANY_HIT {
+            return self.traverse_any_hit(kernel, ray, stats, leaves);
         }
         let node_ray = NodeRay::new(ray);
         let mut t_max = ray.t_max;
@@ -409,6 +434,85 @@ impl Bvh {
                     current = entry;
                     break;
                 }
+            }
+        }
+        stats.nodes_visited += nodes;
+        stats.primitive_tests += primitives;
+    }
+
+    /// The any-hit loop: a node's hit leaves are visited as its box test finds them (in
+    /// lane order), its hit interior children go on: the first next, the rest pending.
+    /// The ray never shortens, so pending entries need no distance check.
+    #[inline(always)]
+    fn traverse_any_hit(
+        &self,
+        kernel: impl NodeKernel,
+        ray: &Ray,
+        stats: &mut TraversalStats,
+        leaves: &mut impl LeafVisit,
+    ) {
+        let node_ray = NodeRay::new(ray);
+        let t_max = ray.t_max;
+        let limit = entry_limit(t_max);
+        let (mut nodes, mut primitives) = (0u64, 0u64);
+        let mut current = 0u32;
+        let mut stack = Stack::new();
+        'walk: loop {
+            let node = &self.wide[current as usize];
+            prefetch_children(node);
+            nodes += 1;
+            let (t, mask) = kernel.hit_children(&node_ray, node, limit);
+            let leaf_lanes = node
+                .counts
+                .iter()
+                .enumerate()
+                .fold(0u32, |bits, (lane, &count)| {
+                    bits | (u32::from(count > 0) << lane)
+                });
+            let mut hit_leaves = mask & leaf_lanes;
+            let mut hit_nodes = mask & !leaf_lanes;
+            while hit_leaves != 0 {
+                let lane = hit_leaves.trailing_zeros() as usize;
+                hit_leaves &= hit_leaves - 1;
+                let count = node.counts[lane];
+                primitives += u64::from(count);
+                if leaves
+                    .visit(node.children[lane] as usize, count as usize, t_max)
+                    .1
+                {
+                    break 'walk;
+                }
+            }
+            if hit_nodes != 0 {
+                // The nearest next; the others pending in any order.
+                let lane = hit_nodes.trailing_zeros() as usize;
+                hit_nodes &= hit_nodes - 1;
+                let (mut near, mut near_t) = (node.children[lane], t[lane]);
+                while hit_nodes != 0 {
+                    let lane = hit_nodes.trailing_zeros() as usize;
+                    hit_nodes &= hit_nodes - 1;
+                    let (child, child_t) = (node.children[lane], t[lane]);
+                    let (keep, keep_t, put_off) = if child_t < near_t {
+                        (child, child_t, near)
+                    } else {
+                        (near, near_t, child)
+                    };
+                    (near, near_t) = (keep, keep_t);
+                    if let Some(next) = self.wide.get(put_off as usize) {
+                        prefetch_node(next);
+                    }
+                    stack.push(Pending {
+                        first: put_off,
+                        count: 0,
+                        t: 0.0,
+                    });
+                }
+                current = near;
+                continue;
+            }
+            match stack.pop() {
+                Some(entry) => current = entry.first,
+                None => break,
             }
         }
         stats.nodes_visited += nodes;
