@@ -334,7 +334,8 @@ impl Bvh {
     }
 
     /// The shared loop over the wide tree: [`LeafVisit::visit`] for each leaf the ray
-    /// reaches, with the box tests of `kernel`.
+    /// reaches, with the box tests of `kernel`; an any-hit visit
+    /// ([`LeafVisit::ANY_HIT`]) gets the any-hit loop.
     #[inline(always)]
     pub(super) fn traverse_with<L: LeafVisit>(
         &self,
@@ -441,8 +442,8 @@ impl Bvh {
     }
 
     /// The any-hit loop: a node's hit leaves are visited as its box test finds them (in
-    /// lane order), its hit interior children go on: the first next, the rest pending.
-    /// The ray never shortens, so pending entries need no distance check.
+    /// lane order), its hit interior children go on: the nearest next, the rest pending
+    /// in any order. The ray never shortens, so pending entries need no distance check.
     #[inline(always)]
     fn traverse_any_hit(
         &self,
