@@ -499,14 +499,13 @@ impl Bvh {
                         (near, near_t, child)
                     };
                     (near, near_t) = (keep, keep_t);
-                    if let Some(next) = self.wide.get(put_off as usize) {
-                        prefetch_node(next);
-                    }
-                    stack.push(Pending {
+                    let pending = Pending {
                         first: put_off,
                         count: 0,
                         t: 0.0,
-                    });
+                    };
+                    self.prefetch(pending, leaves);
+                    stack.push(pending);
                 }
                 current = near;
                 continue;
