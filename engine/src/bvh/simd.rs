@@ -66,6 +66,17 @@ pub trait NodeKernel: Copy {
     /// `i`): `limit` is a closest hit widened for the slab test's rounding (`entry_limit`).
     fn hit_children(self, ray: &NodeRay, node: &WideNode, limit: f32) -> ([f32; WIDTH], u32);
 
+    /// Bit `i` set when lane `i` of `node` is a leaf (a count above zero).
+    #[inline(always)]
+    fn leaf_lanes(self, node: &WideNode) -> u32 {
+        node.counts
+            .iter()
+            .enumerate()
+            .fold(0, |bits, (lane, &count)| {
+                bits | (u32::from(count > 0) << lane)
+            })
+    }
+
     /// [`WatertightRay::block_hits`] on this kernel, bit for bit: the exact test on the
     /// first `lanes` lanes of `block`, against `t_max`.
     fn block_hits(
@@ -370,6 +381,23 @@ mod avx2 {
             // SAFETY: `self` exists only when `detect` found AVX2 on this CPU.
             unsafe { block_hits(ray, block, lanes, t_max) }
         }
+
+        #[inline(always)]
+        fn leaf_lanes(self, node: &WideNode) -> u32 {
+            // SAFETY: `self` exists only when `detect` found AVX2 on this CPU.
+            unsafe { leaf_lanes(node) }
+        }
+    }
+
+    /// The portable `leaf_lanes` in one compare: eight counts in one register (the
+    /// scalar fold took 18 instructions a node, 8 % of a shadow ray's).
+    #[target_feature(enable = "avx2")]
+    #[inline]
+    fn leaf_lanes(node: &WideNode) -> u32 {
+        // SAFETY: `counts` holds WIDTH = 8 u32, one 256-bit register's worth.
+        let counts = unsafe { _mm256_loadu_si256(node.counts.as_ptr().cast()) };
+        let empty = _mm256_cmpeq_epi32(counts, _mm256_setzero_si256());
+        !(_mm256_movemask_ps(_mm256_castsi256_ps(empty)) as u32) & 0xff
     }
 
     /// The portable exact test's f64 operations in the same order on the four lanes of
@@ -716,6 +744,26 @@ mod tests {
             hits += m_a.count_ones();
         }
         assert!(hits > 1000, "too few boxes hit ({hits}) to compare");
+    }
+
+    #[cfg(target_arch = "x86_64")]
+    #[test]
+    fn avx2_and_portable_leaf_lanes_agree() {
+        let avx2 = avx2_here();
+        let mut node = WideNode::empty();
+        // Every pattern of leaf lanes, with counts up to the largest a lane can hold.
+        for pattern in 0..256u32 {
+            for lane in 0..WIDTH {
+                let leaf = pattern >> lane & 1 == 1;
+                node.counts[lane] = if leaf {
+                    [1, 4, 255, u32::MAX][lane % 4]
+                } else {
+                    0
+                };
+            }
+            assert_eq!(Portable.leaf_lanes(&node), pattern);
+            assert_eq!(avx2.leaf_lanes(&node), pattern, "counts {:?}", node.counts);
+        }
     }
 
     #[cfg(target_arch = "x86_64")]

@@ -463,13 +463,7 @@ impl Bvh {
             prefetch_children(node);
             nodes += 1;
             let (t, mask) = kernel.hit_children(&node_ray, node, limit);
-            let leaf_lanes = node
-                .counts
-                .iter()
-                .enumerate()
-                .fold(0u32, |bits, (lane, &count)| {
-                    bits | (u32::from(count > 0) << lane)
-                });
+            let leaf_lanes = kernel.leaf_lanes(node);
             let mut hit_leaves = mask & leaf_lanes;
             let mut hit_nodes = mask & !leaf_lanes;
             while hit_leaves != 0 {
