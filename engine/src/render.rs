@@ -663,21 +663,29 @@ impl<'a> RenderScene<'a> {
             // Unbiased for the discrete set: E[f(L)/p(L)] = Σ_i albedo/π · E_i · cos_i · V_i.
             // With subsets the selection is stratified, each stratum equally likely over
             // the render's random offset, so the expectation is the same.
-            for k in 0..samples {
-                let u = key.get(dimension + k);
-                let u = match shading.light_subset {
-                    Some((subsets, subset)) => subsets.selection(subset, k, samples, u),
-                    None => stratified_selection(k, samples, u),
-                };
-                let Some(light) = environment.lights.sample(u) else {
-                    continue;
-                };
-                if let Some((cos, side)) =
-                    self.lit_cosine(surface, light.direction, translucent, allowance, stats)
-                {
-                    let weight =
-                        cos * std::f32::consts::FRAC_1_PI / (light.probability * samples as f32);
-                    radiance += side_factor(side) * Vec3A::from(light.irradiance) * weight;
+            // The lights of up to PICKS_AHEAD samples are picked before any of their
+            // shadow rays is traced: each pick is a chain of dependent loads (guide table,
+            // CDF, light), and picked between two traversals each chain's latency showed.
+            const PICKS_AHEAD: u32 = 8;
+            for start in (0..samples).step_by(PICKS_AHEAD as usize) {
+                let end = (start + PICKS_AHEAD).min(samples);
+                let mut picks = [None; PICKS_AHEAD as usize];
+                for (k, pick) in (start..end).zip(&mut picks) {
+                    let u = key.get(dimension + k);
+                    let u = match shading.light_subset {
+                        Some((subsets, subset)) => subsets.selection(subset, k, samples, u),
+                        None => stratified_selection(k, samples, u),
+                    };
+                    *pick = environment.lights.sample(u);
+                }
+                for light in picks[..(end - start) as usize].iter().flatten() {
+                    if let Some((cos, side)) =
+                        self.lit_cosine(surface, light.direction, translucent, allowance, stats)
+                    {
+                        let weight = cos * std::f32::consts::FRAC_1_PI
+                            / (light.probability * samples as f32);
+                        radiance += side_factor(side) * Vec3A::from(light.irradiance) * weight;
+                    }
                 }
             }
         } else if let Some(sky) = &self.lights.sky {
