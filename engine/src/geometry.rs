@@ -272,6 +272,7 @@ impl<K: NodeKernel, A: FnMut(u32, &TriangleHit) -> bool> LeafVisit for ClosestLe
             leaving,
             best,
         } = self;
+        let mesh = &leaf.geometry.mesh;
         leaf.for_hits(first, count, &mut t_max, |triangle, hit, t_max| {
             if triangle != *leaving && accept(triangle, hit) {
                 *best = Some(GeometryHit {
@@ -279,6 +280,11 @@ impl<K: NodeKernel, A: FnMut(u32, &TriangleHit) -> bool> LeafVisit for ClosestLe
                     hit: *hit,
                 });
                 *t_max = hit.t;
+                // Shading the hit starts with its vertex indices: ask for them while the
+                // walk goes on.
+                if let Some(indices) = mesh.indices.get(triangle as usize) {
+                    prefetch(indices);
+                }
             }
             false
         });
