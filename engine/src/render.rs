@@ -678,7 +678,7 @@ impl<'a> RenderScene<'a> {
                     };
                     *pick = environment.lights.sample(u);
                 }
-                for light in picks[..(end - start) as usize].iter().flatten() {
+                for light in picks.iter().flatten() {
                     if let Some((cos, side)) =
                         self.lit_cosine(surface, light.direction, translucent, allowance, stats)
                     {
