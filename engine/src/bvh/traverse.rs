@@ -460,7 +460,6 @@ impl Bvh {
         let mut stack = Stack::new();
         'walk: loop {
             let node = &self.wide[current as usize];
-            prefetch_children(node);
             nodes += 1;
             let (t, mask) = kernel.hit_children(&node_ray, node, limit);
             let leaf_lanes = kernel.leaf_lanes(node);
