@@ -34,6 +34,16 @@ pub struct Geometry {
     support: SupportTable,
 }
 
+/// One triangle block of a geometry's leaves, with the lanes its leaf uses: what an
+/// any-hit walk reports for the block where it stopped.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct BlockRef {
+    /// Index of the block in the geometry's block array.
+    pub index: u32,
+    /// Lanes that hold the leaf's triangles (1–4); the rest repeat the last one.
+    pub lanes: u32,
+}
+
 /// A hit inside one geometry.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct GeometryHit {
@@ -132,6 +142,12 @@ impl Geometry {
         leaves.best
     }
 
+    /// Triangle block `block.index`, when the geometry has it.
+    #[inline]
+    pub fn block(&self, block: BlockRef) -> Option<&TriangleBlock> {
+        self.blocks.get(block.index as usize)
+    }
+
     /// True when some triangle that `accept` keeps is hit with `0 < t < ray.t_max`.
     #[inline]
     pub fn intersect_any(
@@ -155,11 +171,26 @@ impl Geometry {
         stats: &mut TraversalStats,
         accept: impl FnMut(u32, &TriangleHit) -> bool,
     ) -> bool {
+        self.occluding_block_with(kernel, ray, leaving, stats, accept)
+            .is_some()
+    }
+
+    /// [`intersect_any_with`](Self::intersect_any_with) that reports the block holding the
+    /// triangle `accept` kept.
+    #[inline(always)]
+    pub fn occluding_block_with(
+        &self,
+        kernel: impl NodeKernel,
+        ray: &Ray,
+        leaving: Option<u32>,
+        stats: &mut TraversalStats,
+        accept: impl FnMut(u32, &TriangleHit) -> bool,
+    ) -> Option<BlockRef> {
         let mut leaves = AnyLeaves {
             leaf: LeafRay::new(kernel, self, ray),
             accept,
             leaving: leaving.unwrap_or(u32::MAX),
-            found: false,
+            found: None,
         };
         kernel.traverse(&self.bvh, ray, stats, &mut leaves);
         leaves.found
@@ -168,8 +199,8 @@ impl Geometry {
     /// Calls `test(triangle, hit, t_max)` in slot order for the triangles of the leaf
     /// over slots `first .. first + count` that the ray hits before `*t_max` (the exact
     /// test, a block of four at a time against the `*t_max` of its start, each lane then
-    /// held to the current one) until it returns true; returns whether it did. `test`
-    /// may lower `*t_max`.
+    /// held to the current one) until it returns true; returns the block where it did.
+    /// `test` may lower `*t_max`.
     #[inline(always)]
     fn for_hits(
         &self,
@@ -179,25 +210,31 @@ impl Geometry {
         count: usize,
         t_max: &mut f32,
         mut test: impl FnMut(u32, &TriangleHit, &mut f32) -> bool,
-    ) -> bool {
+    ) -> Option<BlockRef> {
         let start = first / TRIANGLE_BLOCK;
         let mut remaining = count;
-        for block in &self.blocks[start..start + count.div_ceil(TRIANGLE_BLOCK)] {
-            let hits = kernel.block_hits(wray, block, remaining.min(TRIANGLE_BLOCK), *t_max);
+        for (index, block) in
+            (start..).zip(&self.blocks[start..start + count.div_ceil(TRIANGLE_BLOCK)])
+        {
+            let lanes = remaining.min(TRIANGLE_BLOCK);
+            let hits = kernel.block_hits(wray, block, lanes, *t_max);
             remaining = remaining.saturating_sub(TRIANGLE_BLOCK);
-            let mut lanes = hits.mask;
-            while lanes != 0 {
-                let lane = lanes.trailing_zeros() as usize;
-                lanes &= lanes - 1;
+            let mut hit_lanes = hits.mask;
+            while hit_lanes != 0 {
+                let lane = hit_lanes.trailing_zeros() as usize;
+                hit_lanes &= hit_lanes - 1;
                 let hit = hits.hit(lane);
                 // A lane before this one may have lowered `t_max`: the lane-by-lane
                 // test would have met the lower bound.
                 if hit.t < *t_max && test(block.triangles[lane & 3], &hit, t_max) {
-                    return true;
+                    return Some(BlockRef {
+                        index: index as u32,
+                        lanes: lanes as u32,
+                    });
                 }
             }
         }
-        false
+        None
     }
 
     /// Heap bytes held (mesh, BVH, triangle blocks).
@@ -244,7 +281,7 @@ impl<'a, K: NodeKernel> LeafRay<'a, K> {
         count: usize,
         t_max: &mut f32,
         test: impl FnMut(u32, &TriangleHit, &mut f32) -> bool,
-    ) -> bool {
+    ) -> Option<BlockRef> {
         let ray = self.ray;
         let wray = &*self
             .watertight
@@ -304,7 +341,8 @@ struct AnyLeaves<'a, K, A> {
     accept: A,
     /// The triangle the ray starts on, or `u32::MAX`.
     leaving: u32,
-    found: bool,
+    /// The block of the triangle `accept` kept.
+    found: Option<BlockRef>,
 }
 
 impl<K: NodeKernel, A: FnMut(u32, &TriangleHit) -> bool> LeafVisit for AnyLeaves<'_, K, A> {
@@ -322,7 +360,7 @@ impl<K: NodeKernel, A: FnMut(u32, &TriangleHit) -> bool> LeafVisit for AnyLeaves
         *found = leaf.for_hits(first, count, &mut limit, |triangle, hit, _| {
             triangle != *leaving && accept(triangle, hit)
         });
-        (t_max, *found)
+        (t_max, found.is_some())
     }
 
     #[inline(always)]

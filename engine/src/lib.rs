@@ -21,6 +21,7 @@ pub mod math;
 pub mod mesh;
 pub mod metrics;
 pub mod node_animation;
+pub mod occluders;
 pub mod opacity;
 pub mod render;
 pub mod sampling;

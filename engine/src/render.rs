@@ -16,6 +16,7 @@ use crate::geometry::GeometryLibrary;
 use crate::interleave::{LightSubsets, stratified_selection};
 use crate::light::LightSet;
 use crate::math::{ErrorPoint, Ray};
+use crate::occluders::OccluderCache;
 use crate::opacity::{Opacity, OpacityMaps};
 use crate::sampling::{SampleKey, cosine_hemisphere, orthonormal_basis};
 use crate::shading::{Shader, ShaderTable};
@@ -499,21 +500,24 @@ impl<'a> RenderScene<'a> {
         allowance: Option<u32>,
         stats: &mut TraversalStats,
     ) -> bool {
-        self.occluded_leaving(ray, None, allowance, stats)
+        self.occluded_leaving(ray, None, allowance, None, stats)
     }
 
     /// [`occluded_within`](Self::occluded_within) for a ray that starts on the triangle
-    /// `leaving`, which it cannot hit again: its test is left out.
+    /// `leaving`, which it cannot hit again: its test is left out. With `occluders`, the
+    /// blocks that stopped recent shadow rays are tried first, and a walk that stops on
+    /// an opaque hit adds its block to them (the answer is the same either way).
     #[inline]
-    fn occluded_leaving(
+    pub fn occluded_leaving(
         &self,
         ray: &Ray,
         leaving: Option<InstanceTriangle>,
         allowance: Option<u32>,
+        occluders: Option<&mut OccluderCache>,
         stats: &mut TraversalStats,
     ) -> bool {
         with_node_kernel!(
-            kernel => self.occluded_leaving_with(kernel, ray, leaving, allowance, stats)
+            kernel => self.occluded_leaving_with(kernel, ray, leaving, allowance, occluders, stats)
         )
     }
 
@@ -524,25 +528,35 @@ impl<'a> RenderScene<'a> {
         ray: &Ray,
         leaving: Option<InstanceTriangle>,
         allowance: Option<u32>,
+        mut occluders: Option<&mut OccluderCache>,
         stats: &mut TraversalStats,
     ) -> bool {
-        if !self.shaders.needs_hit_filter() {
-            return self.top_level.intersect_any_with(
-                kernel,
-                self.geometry,
-                ray,
-                leaving,
-                stats,
-                |_| true,
-            );
-        }
+        let filtered = self.shaders.needs_hit_filter();
         let mut filter = TraversalStats::default();
+        if let Some(cache) = occluders.as_deref_mut()
+            && cache.stops(kernel, ray, leaving, |c| {
+                !filtered || self.filter(c, ray.direction, &mut filter) == FilterOutcome::Opaque
+            })
+        {
+            stats.any_rays += 1;
+            stats.cached_occlusions += 1;
+            stats.add(&filter);
+            return true;
+        }
         let mut holes = CountedHoles::new(allowance.map_or(0, |a| a as usize + 1));
-        let hit =
+        let mut stopped_on_opaque = false;
+        let occluder =
             self.top_level
-                .intersect_any_with(kernel, self.geometry, ray, leaving, stats, |c| {
+                .occluder_with(kernel, self.geometry, ray, leaving, stats, |c| {
+                    if !filtered {
+                        stopped_on_opaque = true;
+                        return true;
+                    }
                     match self.filter(c, ray.direction, &mut filter) {
-                        FilterOutcome::Opaque => true,
+                        FilterOutcome::Opaque => {
+                            stopped_on_opaque = true;
+                            true
+                        }
                         FilterOutcome::Culled => false,
                         FilterOutcome::Hole => {
                             let Some(allowance) = allowance else {
@@ -556,7 +570,11 @@ impl<'a> RenderScene<'a> {
                     }
                 });
         stats.add(&filter);
-        hit
+        // A hole that only the allowance made opaque would stop few other rays.
+        if let (Some(cache), Some(occluder), true) = (occluders, occluder, stopped_on_opaque) {
+            cache.remember(self.top_level, self.geometry, occluder);
+        }
+        occluder.is_some()
     }
 
     /// Rebuilds position (with error bound), normals and UV of a hit in world space.
@@ -611,6 +629,7 @@ impl<'a> RenderScene<'a> {
         direction: Vec3,
         translucent: bool,
         allowance: Option<u32>,
+        occluders: &mut OccluderCache,
         stats: &mut TraversalStats,
     ) -> Option<(f32, Side)> {
         let (ng, l) = (surface.geometric_normal, Vec3A::from(direction));
@@ -623,7 +642,8 @@ impl<'a> RenderScene<'a> {
             return None;
         };
         let shadow = Ray::new(surface.point.offset_origin(outward, l), l);
-        (!self.occluded_leaving(&shadow, Some(surface.triangle), allowance, stats))
+        let leaving = Some(surface.triangle);
+        (!self.occluded_leaving(&shadow, leaving, allowance, Some(occluders), stats))
             .then_some((cos, side))
     }
 
@@ -643,6 +663,7 @@ impl<'a> RenderScene<'a> {
         dimension: u32,
         shading: &SampleShading,
         allowance: Option<u32>,
+        occluders: &mut OccluderCache,
         stats: &mut TraversalStats,
     ) -> Vec3A {
         let translucent = material.is_translucent();
@@ -650,9 +671,14 @@ impl<'a> RenderScene<'a> {
         let ns = surface.shading_normal;
         let mut radiance = Vec3A::ZERO;
         for light in &self.lights.directional {
-            if let Some((cos, side)) =
-                self.lit_cosine(surface, light.direction, translucent, allowance, stats)
-            {
+            if let Some((cos, side)) = self.lit_cosine(
+                surface,
+                light.direction,
+                translucent,
+                allowance,
+                occluders,
+                stats,
+            ) {
                 radiance += side_factor(side)
                     * Vec3A::from(light.irradiance)
                     * (cos * std::f32::consts::FRAC_1_PI);
@@ -679,9 +705,14 @@ impl<'a> RenderScene<'a> {
                     *pick = environment.lights.sample(u);
                 }
                 for light in picks.iter().flatten() {
-                    if let Some((cos, side)) =
-                        self.lit_cosine(surface, light.direction, translucent, allowance, stats)
-                    {
+                    if let Some((cos, side)) = self.lit_cosine(
+                        surface,
+                        light.direction,
+                        translucent,
+                        allowance,
+                        occluders,
+                        stats,
+                    ) {
                         let weight = cos * std::f32::consts::FRAC_1_PI
                             / (light.probability * samples as f32);
                         radiance += side_factor(side) * Vec3A::from(light.irradiance) * weight;
@@ -702,7 +733,8 @@ impl<'a> RenderScene<'a> {
                     continue;
                 };
                 let shadow = Ray::new(surface.point.offset_origin(outward, d), d);
-                if !self.occluded_leaving(&shadow, Some(surface.triangle), allowance, stats) {
+                let leaving = Some(surface.triangle);
+                if !self.occluded_leaving(&shadow, leaving, allowance, Some(occluders), stats) {
                     // Cosine sampling cancels the cos/π of the Lambertian BRDF; the side's
                     // share is its probability.
                     radiance += side_factor(side) * sky.radiance(d) / (share * samples as f32);
@@ -723,6 +755,7 @@ impl<'a> RenderScene<'a> {
         material: &Material,
         key: &SampleKey,
         shading: &SampleShading,
+        occluders: &mut OccluderCache,
         stats: &mut TraversalStats,
     ) -> Vec3A {
         let stride = 2 * shading.light_samples + 3;
@@ -767,6 +800,7 @@ impl<'a> RenderScene<'a> {
                     SKY_DIMENSION + bounce * stride,
                     shading,
                     None,
+                    occluders,
                     stats,
                 );
             radiance += throughput * light;
@@ -796,6 +830,20 @@ impl<'a> RenderScene<'a> {
         ray: &Ray,
         key: &SampleKey,
         shading: &SampleShading,
+        stats: &mut TraversalStats,
+    ) -> ShadedSample {
+        self.shade_with(ray, key, shading, &mut OccluderCache::new(), stats)
+    }
+
+    /// [`shade`](Self::shade) whose shadow rays try the blocks in `occluders` first
+    /// and add the blocks that stop them: one cache for a tile's samples (the same
+    /// result as without it).
+    pub fn shade_with(
+        &self,
+        ray: &Ray,
+        key: &SampleKey,
+        shading: &SampleShading,
+        occluders: &mut OccluderCache,
         stats: &mut TraversalStats,
     ) -> ShadedSample {
         let curve = shading.transparency.as_ref();
@@ -841,10 +889,11 @@ impl<'a> RenderScene<'a> {
                 SKY_DIMENSION,
                 shading,
                 allowance,
+                occluders,
                 stats,
             );
         if shading.bounces > 0 {
-            radiance += self.indirect_light(&surface, &material, key, shading, stats);
+            radiance += self.indirect_light(&surface, &material, key, shading, occluders, stats);
         }
         let ng = surface.geometric_normal;
         ShadedSample {
@@ -886,6 +935,9 @@ pub fn render_tile(
         bounces: params.bounces,
         ..SampleShading::plain(params.light_samples)
     };
+    // One per tile, starting empty: its counters then do not depend on which thread
+    // rendered which tile before.
+    let mut occluders = OccluderCache::new();
     for y in tile.y..tile.y + tile.height {
         for x in tile.x..tile.x + tile.width {
             let (mut sum, mut count) = (Vec3::ZERO, 0u32);
@@ -898,7 +950,8 @@ pub fn render_tile(
                     .map(|subsets| (subsets, subsets.subset(x, y, frame, sample, spp)));
                 let film = Vec2::new(x as f32, y as f32) + key.get2(0);
                 let ray = view.ray(film, key.get2(2));
-                let shaded = scene.shade(&ray, &key, &shading, &mut result.stats);
+                let shaded =
+                    scene.shade_with(&ray, &key, &shading, &mut occluders, &mut result.stats);
                 let radiance = Vec3::from(shaded.radiance);
                 // The NaN firewall: a bad sample is counted and dropped, never averaged.
                 if radiance.is_finite() {

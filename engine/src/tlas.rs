@@ -3,7 +3,7 @@
 
 use crate::bvh::simd::{NodeKernel, affine_from_columns, prefetch, with_node_kernel};
 use crate::bvh::{BuildParams, BuildScratch, Bvh, TraversalStats};
-use crate::geometry::{Geometry, GeometryId, GeometryLibrary};
+use crate::geometry::{BlockRef, Geometry, GeometryId, GeometryLibrary};
 use crate::math::{Aabb, Ray};
 use glam::{Affine3A, Vec3A};
 use rayon::prelude::*;
@@ -96,6 +96,16 @@ pub struct InstanceTriangle {
     pub slot: u32,
     /// Triangle index in the instance's mesh.
     pub triangle: u32,
+}
+
+/// Where an any-hit walk stopped: the instance and the triangle block of the hit its
+/// filter accepted.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct Occluder {
+    /// TLAS slot of the instance.
+    pub slot: u32,
+    /// The block in the instance's geometry.
+    pub block: BlockRef,
 }
 
 /// Why instances were left out of a build.
@@ -590,10 +600,27 @@ impl TopLevel {
         ray: &Ray,
         leaving: Option<InstanceTriangle>,
         stats: &mut TraversalStats,
-        mut filter: impl FnMut(&Candidate) -> bool,
+        filter: impl FnMut(&Candidate) -> bool,
     ) -> bool {
+        self.occluder_with(kernel, library, ray, leaving, stats, filter)
+            .is_some()
+    }
+
+    /// [`intersect_any_with`](Self::intersect_any_with) that reports where the walk
+    /// stopped: the instance and triangle block of the hit `filter` accepted.
+    #[inline(always)]
+    pub fn occluder_with(
+        &self,
+        kernel: impl NodeKernel,
+        library: &GeometryLibrary,
+        ray: &Ray,
+        leaving: Option<InstanceTriangle>,
+        stats: &mut TraversalStats,
+        mut filter: impl FnMut(&Candidate) -> bool,
+    ) -> Option<Occluder> {
         stats.any_rays += 1;
         let mut inner = TraversalStats::default();
+        let mut occluder = None;
         let mut test = |slot: usize, t_max: f32, leaving: Option<u32>| {
             let record = &self.instances[slot];
             let geometry = &library.geometries[record.geometry.0 as usize];
@@ -601,16 +628,27 @@ impl TopLevel {
                 t_max,
                 ..ray.transformed(&record.world_to_object())
             };
-            geometry.intersect_any_with(kernel, &local, leaving, &mut inner, |triangle, hit| {
-                filter(&Candidate {
-                    slot: slot as u32,
-                    instance: record.id,
-                    geometry: record.geometry,
-                    triangle,
-                    barycentrics: hit.barycentrics,
-                    t: hit.t,
-                })
-            })
+            let block = geometry.occluding_block_with(
+                kernel,
+                &local,
+                leaving,
+                &mut inner,
+                |triangle, hit| {
+                    filter(&Candidate {
+                        slot: slot as u32,
+                        instance: record.id,
+                        geometry: record.geometry,
+                        triangle,
+                        barycentrics: hit.barycentrics,
+                        t: hit.t,
+                    })
+                },
+            );
+            occluder = block.map(|block| Occluder {
+                slot: slot as u32,
+                block,
+            });
+            occluder.is_some()
         };
         // A ray leaving a plant is most often stopped by that plant: its own instance
         // first, then the rest of the top level without it (whose walk still counts the
@@ -630,7 +668,8 @@ impl TopLevel {
             |slot| prefetch(&self.instances[slot]),
         );
         stats.add(&inner);
-        occluded
+        debug_assert_eq!(occluded, occluder.is_some());
+        occluder
     }
 }
 

@@ -11,6 +11,7 @@ use sylva_engine::geometry::{Geometry, GeometryLibrary};
 use sylva_engine::light::{DirectionalLight, LightSet, SkyLight};
 use sylva_engine::math::Ray;
 use sylva_engine::mesh::TriangleMesh;
+use sylva_engine::occluders::OccluderCache;
 use sylva_engine::opacity::OpacityMaps;
 use sylva_engine::render::{RenderScene, SampleShading};
 use sylva_engine::sampling::SampleKey;
@@ -502,5 +503,76 @@ fn a_single_sided_masked_surface_is_culled_behind_even_where_its_map_is_opaque()
     assert_eq!(
         stats.texture_alpha_tests, 0,
         "the maps decided every alpha test"
+    );
+}
+
+/// Shadow rays tested against a cache of recent occluders, one cache kept across all of
+/// them as a tile keeps it, answer exactly as walks without it: rays from random points
+/// and rays leaving a layer they hit (whose own block the cache may hold), with and
+/// without a hole allowance. Enough of them stop on a cached block that a wrong cached
+/// answer would show.
+#[test]
+fn remembered_occluders_never_change_a_shadow_rays_answer() {
+    let mut stats = TraversalStats::default();
+    let (mut rays, mut occluded) = (0u64, 0u64);
+    for seed in 0..4 {
+        let mut rng = TestRng::new(100 + seed);
+        let stack = stack(&mut rng, 10, 0.6);
+        let scene = stack.scene();
+        let mut cache = OccluderCache::new();
+        for _ in 0..3000 {
+            let origin = Vec3A::new(rng.range(-0.2, 1.2), rng.range(-0.2, 1.2), 1.0);
+            let tilt = Vec3A::new(rng.range(-0.3, 0.3), rng.range(-0.3, 0.3), 0.0);
+            let ray = Ray::new(origin, (tilt - Vec3A::Z).normalize());
+            let allowance = [None, Some(0), Some(2)][rng.next_u64() as usize % 3];
+            let expected = scene.occluded_within(&ray, allowance, &mut TraversalStats::default());
+            let got = scene.occluded_leaving(&ray, None, allowance, Some(&mut cache), &mut stats);
+            assert_eq!(got, expected, "ray {ray:?}, allowance {allowance:?}");
+            rays += 1;
+            occluded += u64::from(got);
+
+            // A shadow ray leaving the surface this ray first meets, toward a light on
+            // either side of it.
+            let Some(hit) = scene.closest(&ray, &mut TraversalStats::default()) else {
+                continue;
+            };
+            let surface = scene.surface(&hit, ray.direction);
+            let light = Vec3A::from(rng.unit());
+            let outward = if light.dot(surface.geometric_normal) >= 0.0 {
+                surface.geometric_normal
+            } else {
+                -surface.geometric_normal
+            };
+            // From the computed point itself half the time, with no offset off the surface.
+            let origin = if rng.f32() < 0.5 {
+                surface.point.point
+            } else {
+                surface.point.offset_origin(outward, light)
+            };
+            let shadow = Ray::new(origin, light);
+            let leaving = Some(surface.triangle);
+            let expected = scene.occluded_leaving(
+                &shadow,
+                leaving,
+                allowance,
+                None,
+                &mut TraversalStats::default(),
+            );
+            let got =
+                scene.occluded_leaving(&shadow, leaving, allowance, Some(&mut cache), &mut stats);
+            assert_eq!(got, expected, "shadow ray {shadow:?} leaving {leaving:?}");
+            rays += 1;
+            occluded += u64::from(got);
+        }
+    }
+    assert!(
+        stats.cached_occlusions > rays / 10,
+        "{} of {rays} rays stopped by the cache",
+        stats.cached_occlusions
+    );
+    assert!(
+        occluded > stats.cached_occlusions + rays / 50 && occluded < rays * 9 / 10,
+        "{occluded} of {rays} rays occluded, {} by the cache",
+        stats.cached_occlusions
     );
 }

@@ -553,7 +553,7 @@ fn summary(
     let rays = render_stats.total.rays();
     let rendered = render_stats.frames;
     format!(
-        "{}: {}x{}, {} frames at {} spp ({} spp in all) -> {}\n  {} instances, {} instanced triangles ({} unique), BLAS build {:.2} s, TLAS build {:.1} ms, scene generation {:.2} s\n  render {:.2} s ({:.3} s per frame), {:.2} M rays/s ({} camera + {} shadow rays), {:.2} transparency segments per camera ray ({:.2} holes tested), {} holes made opaque, {}, total {:.2} s\n  per ray: {:.1} nodes visited, {:.1} primitive tests (instances and triangles), {:.2} alpha tests ({:.2} sampled the texture)",
+        "{}: {}x{}, {} frames at {} spp ({} spp in all) -> {}\n  {} instances, {} instanced triangles ({} unique), BLAS build {:.2} s, TLAS build {:.1} ms, scene generation {:.2} s\n  render {:.2} s ({:.3} s per frame), {:.2} M rays/s ({} camera + {} shadow rays), {:.2} transparency segments per camera ray ({:.2} holes tested), {} holes made opaque, {}, total {:.2} s\n  per ray: {:.1} nodes visited, {:.1} primitive tests (instances and triangles), {:.2} alpha tests ({:.2} sampled the texture); {:.1} % of shadow rays stopped by a recent occluder without a walk",
         scene_label(&args.scene),
         width,
         args.height,
@@ -581,6 +581,8 @@ fn summary(
         render_stats.total.primitive_tests as f64 / rays.max(1) as f64,
         render_stats.total.filter_tests as f64 / rays.max(1) as f64,
         render_stats.total.texture_alpha_tests as f64 / rays.max(1) as f64,
+        100.0 * render_stats.total.cached_occlusions as f64
+            / render_stats.total.any_rays.max(1) as f64,
     )
 }
 

@@ -35,6 +35,9 @@ pub struct TraversalStats {
     pub holes_passed: u64,
     /// Holes adaptive transparency turned opaque (camera and shadow rays).
     pub opaque_holes: u64,
+    /// Shadow rays (counted in `any_rays`) that a block where a recent shadow ray
+    /// stopped stopped too, without a walk.
+    pub cached_occlusions: u64,
 }
 
 impl TraversalStats {
@@ -50,6 +53,7 @@ impl TraversalStats {
         self.closest_filter_rejections += other.closest_filter_rejections;
         self.holes_passed += other.holes_passed;
         self.opaque_holes += other.opaque_holes;
+        self.cached_occlusions += other.cached_occlusions;
     }
 
     /// Mean alpha tests that found a hole per closest-hit ray: the transparency work,
@@ -131,7 +135,18 @@ impl NodeRay {
     /// enter before `t_max` (bit `i` for lane `i`; a conservative test), on whichever
     /// SIMD kernel this machine runs.
     pub fn hit_children(&self, node: &WideNode, t_max: f32) -> ([f32; WIDTH], u32) {
-        with_node_kernel!(kernel => kernel.hit_children(self, node, entry_limit(t_max)))
+        with_node_kernel!(kernel => self.hit_children_with(kernel, node, t_max))
+    }
+
+    /// [`hit_children`](Self::hit_children) with the box tests of `kernel`.
+    #[inline(always)]
+    pub fn hit_children_with(
+        &self,
+        kernel: impl NodeKernel,
+        node: &WideNode,
+        t_max: f32,
+    ) -> ([f32; WIDTH], u32) {
+        kernel.hit_children(self, node, entry_limit(t_max))
     }
 }
 

@@ -41,7 +41,8 @@ const _: () = assert!(std::mem::size_of::<WideNode>() == 256);
 const UNUSED: f32 = f32::INFINITY;
 
 impl WideNode {
-    pub(super) fn empty() -> Self {
+    /// A node with every lane unused: no ray enters any of them.
+    pub fn empty() -> Self {
         let inf = [UNUSED; WIDTH];
         Self {
             min_x: inf,

@@ -293,7 +293,7 @@ impl Writer {
         }
         let pixels = result.sums.len();
         self.u32(pixels as u32);
-        self.0.reserve(pixels * PIXEL_BYTES + 8 + 10 * 8);
+        self.0.reserve(pixels * PIXEL_BYTES + 8 + 11 * 8);
         for i in 0..pixels {
             self.vec3(result.sums[i]);
             self.u32(result.counts[i]);
@@ -318,6 +318,7 @@ impl Writer {
             s.closest_filter_rejections,
             s.holes_passed,
             s.opaque_holes,
+            s.cached_occlusions,
         ] {
             self.u64(v);
         }
@@ -412,6 +413,7 @@ impl Reader<'_> {
             &mut s.closest_filter_rejections,
             &mut s.holes_passed,
             &mut s.opaque_holes,
+            &mut s.cached_occlusions,
         ] {
             *v = self.u64()?;
         }
@@ -464,6 +466,7 @@ mod tests {
                 closest_filter_rejections: 8,
                 holes_passed: 9,
                 opaque_holes: u64::MAX,
+                cached_occlusions: 10,
             },
         }
     }
