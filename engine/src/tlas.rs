@@ -5,6 +5,7 @@ use crate::bvh::simd::{NodeKernel, affine_from_columns, prefetch, with_node_kern
 use crate::bvh::{BuildParams, BuildScratch, Bvh, TraversalStats};
 use crate::geometry::{BlockRef, Geometry, GeometryId, GeometryLibrary};
 use crate::math::{Aabb, Ray};
+use crate::triangle::TriangleHit;
 use glam::{Affine3A, Vec3A};
 use rayon::prelude::*;
 
@@ -84,6 +85,21 @@ pub struct Candidate {
     pub barycentrics: Vec3A,
     /// Ray parameter.
     pub t: f32,
+}
+
+impl Candidate {
+    /// The hit `hit` on triangle `triangle` of the instance in TLAS slot `slot`.
+    #[inline(always)]
+    fn on(slot: usize, record: &InstanceRecord, triangle: u32, hit: &TriangleHit) -> Self {
+        Self {
+            slot: slot as u32,
+            instance: record.id,
+            geometry: record.geometry,
+            triangle,
+            barycentrics: hit.barycentrics,
+            t: hit.t,
+        }
+    }
 }
 
 /// The closest accepted hit of a ray.
@@ -531,25 +547,9 @@ impl TopLevel {
                     &local,
                     leaving_in(slot),
                     &mut inner,
-                    |triangle, hit| {
-                        filter(&Candidate {
-                            slot: slot as u32,
-                            instance: record.id,
-                            geometry: record.geometry,
-                            triangle,
-                            barycentrics: hit.barycentrics,
-                            t: hit.t,
-                        })
-                    },
+                    |triangle, hit| filter(&Candidate::on(slot, record, triangle, hit)),
                 )?;
-                best = Some(Candidate {
-                    slot: slot as u32,
-                    instance: record.id,
-                    geometry: record.geometry,
-                    triangle: found.triangle,
-                    barycentrics: found.hit.barycentrics,
-                    t: found.hit.t,
-                });
+                best = Some(Candidate::on(slot, record, found.triangle, &found.hit));
                 Some(found.hit.t)
             },
             |slot| prefetch(&self.instances[slot]),
@@ -633,16 +633,7 @@ impl TopLevel {
                 &local,
                 leaving,
                 &mut inner,
-                |triangle, hit| {
-                    filter(&Candidate {
-                        slot: slot as u32,
-                        instance: record.id,
-                        geometry: record.geometry,
-                        triangle,
-                        barycentrics: hit.barycentrics,
-                        t: hit.t,
-                    })
-                },
+                |triangle, hit| filter(&Candidate::on(slot, record, triangle, hit)),
             );
             occluder = block.map(|block| Occluder {
                 slot: slot as u32,
