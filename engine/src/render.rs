@@ -7,8 +7,8 @@
 //! traversal, for camera and shadow rays alike; adaptive transparency turns holes beyond
 //! a camera's allowance into opaque hits.
 
-use crate::bvh::TraversalStats;
 use crate::bvh::simd::{NodeKernel, with_node_kernel};
+use crate::bvh::{PACKET, TraversalStats};
 use crate::camera::{Camera, CameraView};
 use crate::environment::luminance;
 use crate::film::{FrameBuffer, Tile, TileResult};
@@ -846,8 +846,145 @@ impl<'a> RenderScene<'a> {
         occluders: &mut OccluderCache,
         stats: &mut TraversalStats,
     ) -> ShadedSample {
+        let primary = self.closest_adaptive(ray, shading.transparency.as_ref(), stats);
+        self.shade_primary(ray, primary, key, shading, occluders, stats)
+    }
+
+    /// The closest hits of a packet of up to [`PACKET`] camera rays, as
+    /// [`closest_adaptive`](Self::closest_adaptive) finds them one by one, from one
+    /// top-level walk; `None` when the packet cannot be traced together (adaptive
+    /// transparency, or rays a packet cannot bound): then they go one by one.
+    pub fn closest_packet(
+        &self,
+        rays: &[Ray],
+        curve: Option<&TransparencyCurve>,
+        scratch: &mut PacketScratch,
+        stats: &mut TraversalStats,
+    ) -> Option<[Option<(Hit, bool)>; PACKET]> {
+        with_node_kernel!(
+            kernel => self.closest_packet_with(kernel, rays, curve, scratch, stats)
+        )
+    }
+
+    #[inline(always)]
+    fn closest_packet_with(
+        &self,
+        kernel: impl NodeKernel,
+        rays: &[Ray],
+        curve: Option<&TransparencyCurve>,
+        scratch: &mut PacketScratch,
+        stats: &mut TraversalStats,
+    ) -> Option<[Option<(Hit, bool)>; PACKET]> {
+        let opaque = |hits: [Option<Hit>; PACKET]| hits.map(|hit| hit.map(|hit| (hit, false)));
+        if !self.shaders.needs_hit_filter() {
+            return self
+                .top_level
+                .intersect_closest_packet_with(kernel, self.geometry, rays, stats, |_, _| true)
+                .map(opaque);
+        }
+        if let Some(curve) = curve {
+            return self.closest_packet_adaptive(kernel, rays, curve, scratch, stats);
+        }
+        let mut filter = TraversalStats::default();
+        let holes = &mut scratch.counted;
+        holes.resize_with(PACKET, || CountedHoles::new(COUNTED_HOLES));
+        holes.iter_mut().for_each(|h| h.reset(COUNTED_HOLES));
+        let hits = self.top_level.intersect_closest_packet_with(
+            kernel,
+            self.geometry,
+            rays,
+            stats,
+            |ray, c| match self.filter(c, rays[ray].direction, &mut filter) {
+                FilterOutcome::Opaque => true,
+                FilterOutcome::Hole => {
+                    holes[ray].insert(c.t, ());
+                    false
+                }
+                FilterOutcome::Culled => false,
+            },
+        )?;
+        filter.holes_passed = hits
+            .iter()
+            .zip(holes.iter())
+            .map(|(hit, holes)| holes.count_before(hit.map_or(f32::INFINITY, |h| h.t)) as u64)
+            .sum();
+        filter.closest_filter_rejections = filter.filter_rejections;
+        stats.add(&filter);
+        Some(opaque(hits))
+    }
+
+    /// [`closest_packet`](Self::closest_packet) with adaptive transparency: each ray's
+    /// holes judged as [`closest_adaptive`](Self::closest_adaptive) judges them.
+    #[inline(always)]
+    fn closest_packet_adaptive(
+        &self,
+        kernel: impl NodeKernel,
+        rays: &[Ray],
+        curve: &TransparencyCurve,
+        scratch: &mut PacketScratch,
+        stats: &mut TraversalStats,
+    ) -> Option<[Option<(Hit, bool)>; PACKET]> {
+        let mut filter = TraversalStats::default();
+        let capacity = curve.max_allowance() as usize + 1;
+        let holes = &mut scratch.candidates;
+        holes.resize_with(PACKET, || CandidateHoles::new(capacity));
+        holes.iter_mut().for_each(|h| h.reset(capacity));
+        let mut last_accepted_hole = [false; PACKET];
+        let hits = self.top_level.intersect_closest_packet_with(
+            kernel,
+            self.geometry,
+            rays,
+            stats,
+            |ray, c| {
+                let outcome = self.filter(c, rays[ray].direction, &mut filter);
+                let accept = match outcome {
+                    FilterOutcome::Opaque => true,
+                    FilterOutcome::Culled => false,
+                    FilterOutcome::Hole => {
+                        let beyond = holes[ray].count_before(c.t) >= curve.allowance(c.t) as usize;
+                        holes[ray].insert(c.t, *c);
+                        beyond
+                    }
+                };
+                if accept {
+                    last_accepted_hole[ray] = outcome == FilterOutcome::Hole;
+                }
+                accept
+            },
+        )?;
+        let mut results = [None; PACKET];
+        for (ray, result) in results.iter_mut().enumerate().take(rays.len()) {
+            let hit = hits[ray];
+            let t_hit = hit.map_or(f32::INFINITY, |h| h.t);
+            let nearer = holes[ray].sorted_before(t_hit);
+            *result = if let Some(&(_, hole)) = first_opaque_hole(curve, nearer) {
+                filter.holes_passed += nearer.iter().take_while(|h| h.0 < hole.t).count() as u64;
+                filter.opaque_holes += 1;
+                Some((hole, true))
+            } else {
+                filter.holes_passed += nearer.len() as u64;
+                filter.opaque_holes += u64::from(hit.is_some() && last_accepted_hole[ray]);
+                hit.map(|hit| (hit, last_accepted_hole[ray]))
+            };
+        }
+        filter.closest_filter_rejections = filter.filter_rejections;
+        stats.add(&filter);
+        Some(results)
+    }
+
+    /// [`shade_with`](Self::shade_with) for a camera ray whose closest hit `primary`
+    /// has been found.
+    pub fn shade_primary(
+        &self,
+        ray: &Ray,
+        primary: Option<(Hit, bool)>,
+        key: &SampleKey,
+        shading: &SampleShading,
+        occluders: &mut OccluderCache,
+        stats: &mut TraversalStats,
+    ) -> ShadedSample {
         let curve = shading.transparency.as_ref();
-        let Some((hit, opaque_hole)) = self.closest_adaptive(ray, curve, stats) else {
+        let Some((hit, opaque_hole)) = primary else {
             return ShadedSample {
                 radiance: self.lights.environment(ray.direction),
                 albedo: Vec3A::ONE,
@@ -910,6 +1047,14 @@ impl<'a> RenderScene<'a> {
     }
 }
 
+/// The per-ray hole lists a packet of camera rays fills, kept from packet to packet (an
+/// array of them built for every packet cost more in copies than the walk it shared).
+#[derive(Debug, Default)]
+pub struct PacketScratch {
+    counted: Vec<CountedHoles>,
+    candidates: Vec<CandidateHoles>,
+}
+
 /// Renders one tile of frame `frame`. Deterministic: depends only on its arguments.
 pub fn render_tile(
     scene: &RenderScene,
@@ -921,11 +1066,11 @@ pub fn render_tile(
     let _span = tracing::trace_span!("render_tile", x = tile.x, y = tile.y).entered();
     let mut result = TileResult {
         tile,
-        sums: Vec::with_capacity(tile.pixel_count()),
-        counts: Vec::with_capacity(tile.pixel_count()),
-        albedo_sums: Vec::with_capacity(tile.pixel_count()),
-        emission_sums: Vec::with_capacity(tile.pixel_count()),
-        surfaces: Vec::with_capacity(tile.pixel_count()),
+        sums: Vec::new(),
+        counts: Vec::new(),
+        albedo_sums: Vec::new(),
+        emission_sums: Vec::new(),
+        surfaces: Vec::new(),
         rejected: 0,
         stats: TraversalStats::default(),
     };
@@ -938,41 +1083,74 @@ pub fn render_tile(
     // One per tile, starting empty: its counters then do not depend on which thread
     // rendered which tile before.
     let mut occluders = OccluderCache::new();
+    let pixels = tile.pixel_count();
+    let mut sums = vec![Vec3::ZERO; pixels];
+    let mut counts = vec![0u32; pixels];
+    let mut albedo_sums = vec![Vec3::ZERO; pixels];
+    let mut emission_sums = vec![Vec3::ZERO; pixels];
+    let mut surfaces = vec![SurfaceGuide::NONE; pixels];
+    let curve = shading.transparency.as_ref();
+    // The camera rays of up to PACKET consecutive samples of a row share one top-level
+    // walk; the samples are still shaded in the order of a walk of their own (pixel by
+    // pixel along the row), which keeps each one's shadow rays near the last ones' in
+    // memory (ordering them in square blocks instead cost more than the packets saved).
+    let mut rays = Vec::with_capacity(PACKET);
+    let mut samples = Vec::with_capacity(PACKET);
+    let mut scratch = PacketScratch::default();
+    let mut row = Vec::with_capacity(tile.width as usize * spp as usize);
     for y in tile.y..tile.y + tile.height {
-        for x in tile.x..tile.x + tile.width {
-            let (mut sum, mut count) = (Vec3::ZERO, 0u32);
-            let (mut albedo_sum, mut emission_sum) = (Vec3::ZERO, Vec3::ZERO);
-            let mut surface = SurfaceGuide::NONE;
-            for sample in 0..spp {
+        row.clear();
+        row.extend(
+            (tile.x..tile.x + tile.width).flat_map(|x| (0..spp).map(move |sample| (x, y, sample))),
+        );
+        for chunk in row.chunks(PACKET) {
+            samples.clear();
+            rays.clear();
+            for &(x, y, sample) in chunk {
                 let key = SampleKey::new(params.seed, x, y, frame, sample);
+                let film = Vec2::new(x as f32, y as f32) + key.get2(0);
+                rays.push(view.ray(film, key.get2(2)));
+                samples.push(key);
+            }
+            let primaries = scene.closest_packet(&rays, curve, &mut scratch, &mut result.stats);
+            for (i, &(x, y, sample)) in chunk.iter().enumerate() {
                 shading.light_subset = params
                     .light_subsets
                     .map(|subsets| (subsets, subsets.subset(x, y, frame, sample, spp)));
-                let film = Vec2::new(x as f32, y as f32) + key.get2(0);
-                let ray = view.ray(film, key.get2(2));
-                let shaded =
-                    scene.shade_with(&ray, &key, &shading, &mut occluders, &mut result.stats);
+                let (ray, key) = (&rays[i], &samples[i]);
+                let shaded = match &primaries {
+                    Some(primaries) => scene.shade_primary(
+                        ray,
+                        primaries[i],
+                        key,
+                        &shading,
+                        &mut occluders,
+                        &mut result.stats,
+                    ),
+                    None => scene.shade_with(ray, key, &shading, &mut occluders, &mut result.stats),
+                };
+                let pixel = ((y - tile.y) * tile.width + (x - tile.x)) as usize;
                 let radiance = Vec3::from(shaded.radiance);
                 // The NaN firewall: a bad sample is counted and dropped, never averaged.
                 if radiance.is_finite() {
-                    if count == 0 {
-                        surface = shaded.surface;
+                    if counts[pixel] == 0 {
+                        surfaces[pixel] = shaded.surface;
                     }
-                    sum += radiance;
-                    albedo_sum += Vec3::from(shaded.albedo);
-                    emission_sum += Vec3::from(shaded.emission);
-                    count += 1;
+                    sums[pixel] += radiance;
+                    albedo_sums[pixel] += Vec3::from(shaded.albedo);
+                    emission_sums[pixel] += Vec3::from(shaded.emission);
+                    counts[pixel] += 1;
                 } else {
                     result.rejected += 1;
                 }
             }
-            result.sums.push(sum);
-            result.counts.push(count);
-            result.albedo_sums.push(albedo_sum);
-            result.emission_sums.push(emission_sum);
-            result.surfaces.push(surface);
         }
     }
+    result.sums = sums;
+    result.counts = counts;
+    result.albedo_sums = albedo_sums;
+    result.emission_sums = emission_sums;
+    result.surfaces = surfaces;
     result
 }
 

@@ -2,7 +2,7 @@
 //! traversal moves the ray into the instance's object space and descends its BLAS.
 
 use crate::bvh::simd::{NodeKernel, affine_from_columns, prefetch, with_node_kernel};
-use crate::bvh::{BuildParams, BuildScratch, Bvh, TraversalStats};
+use crate::bvh::{BuildParams, BuildScratch, Bvh, PACKET, TraversalStats};
 use crate::geometry::{BlockRef, Geometry, GeometryId, GeometryLibrary};
 use crate::math::{Aabb, Ray};
 use crate::triangle::TriangleHit;
@@ -556,6 +556,61 @@ impl TopLevel {
         );
         stats.add(&inner);
         best
+    }
+
+    /// [`intersect_closest_packet_with`](Self::intersect_closest_packet_with) on this
+    /// CPU's best kernel.
+    #[inline]
+    pub fn intersect_closest_packet(
+        &self,
+        library: &GeometryLibrary,
+        rays: &[Ray],
+        stats: &mut TraversalStats,
+        filter: impl FnMut(usize, &Candidate) -> bool,
+    ) -> Option<[Option<Hit>; PACKET]> {
+        with_node_kernel!(
+            kernel => self.intersect_closest_packet_with(kernel, library, rays, stats, filter)
+        )
+    }
+
+    /// [`intersect_closest_with`](Self::intersect_closest_with) for a packet of up to
+    /// [`PACKET`] coherent rays that start on no surface (a camera's neighbouring
+    /// pixels): one top-level walk for all of them, then each ray's own bottom-level
+    /// walks; `filter(ray, candidate)` judges ray `ray`'s candidates. `None` when the
+    /// packet cannot be bounded (see [`Bvh::traverse_closest_packet`]): nothing was
+    /// traced, and the rays go one by one.
+    #[inline(always)]
+    pub fn intersect_closest_packet_with(
+        &self,
+        kernel: impl NodeKernel,
+        library: &GeometryLibrary,
+        rays: &[Ray],
+        stats: &mut TraversalStats,
+        mut filter: impl FnMut(usize, &Candidate) -> bool,
+    ) -> Option<[Option<Hit>; PACKET]> {
+        let mut inner = TraversalStats::default();
+        let mut best = [None; PACKET];
+        self.bvh
+            .traverse_closest_packet(rays, stats, |slot, ray, t_max| {
+                let record = &self.instances[slot];
+                let geometry = &library.geometries[record.geometry.0 as usize];
+                let local = Ray {
+                    t_max,
+                    ..rays[ray].transformed(&record.world_to_object())
+                };
+                let found = geometry.intersect_closest_with(
+                    kernel,
+                    &local,
+                    None,
+                    &mut inner,
+                    |triangle, hit| filter(ray, &Candidate::on(slot, record, triangle, hit)),
+                )?;
+                best[ray] = Some(Candidate::on(slot, record, found.triangle, &found.hit));
+                Some(found.hit.t)
+            })?;
+        stats.closest_rays += rays.len().min(PACKET) as u64;
+        stats.add(&inner);
+        Some(best)
     }
 
     /// True when some hit with `t < ray.t_max` is accepted by `filter`.

@@ -120,6 +120,14 @@ impl<T: Copy + Default, const N: usize> NearestHoles<T, N> {
         }
     }
 
+    /// Empties the list for another ray, now keeping at most `capacity` (≤ `N`) holes;
+    /// cheaper than [`new`](Self::new), which writes all `N` entries.
+    #[inline]
+    pub fn reset(&mut self, capacity: usize) {
+        self.len = 0;
+        self.capacity = capacity.min(N);
+    }
+
     /// Offers a hole at ray parameter `t`; kept when the list has room or `t` is nearer
     /// than its farthest hole (which it replaces).
     #[inline]

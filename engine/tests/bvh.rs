@@ -7,7 +7,8 @@ use common::*;
 use glam::{Affine3A, Vec3, Vec3A};
 use proptest::prelude::*;
 use sylva_engine::bvh::{
-    BOTTOM_GRID_FROM, BuildParams, BuildScratch, Bvh, GRID_FROM, PADDING, TraversalStats, WIDTH,
+    BOTTOM_GRID_FROM, BuildParams, BuildScratch, Bvh, GRID_FROM, PACKET, PADDING, TraversalStats,
+    WIDTH,
 };
 use sylva_engine::geometry::{Geometry, GeometryId, GeometryLibrary};
 use sylva_engine::math::{Aabb, Ray};
@@ -469,6 +470,89 @@ proptest! {
     fn proptest_tlas_closest_equals_brute_force(seed in any::<u64>(), geometries in 1usize..5, instances in 0usize..120) {
         check_instances_against_brute_force(seed, geometries, instances, 150);
     }
+}
+
+/// A packet of `n` rays from `origin` (jittered by up to `origin_jitter`) around
+/// `direction`, spread by up to `spread` per component.
+fn ray_packet(
+    rng: &mut TestRng,
+    n: usize,
+    origin: Vec3,
+    origin_jitter: f32,
+    direction: Vec3,
+    spread: f32,
+) -> Vec<Ray> {
+    (0..n)
+        .map(|_| {
+            let o = origin + rng.vec3(-origin_jitter, origin_jitter);
+            let d = (direction + rng.vec3(-spread, spread)).normalize();
+            Ray::new(o.into(), d.into())
+        })
+        .collect()
+}
+
+#[test]
+fn packet_walks_find_each_rays_own_closest_hit() {
+    let mut rng = TestRng::new(77);
+    let lib = random_library(&mut rng, 5, 300);
+    let descs = random_instances(&mut rng, 600, 5, (-0.5, 0.7));
+    let tlas = TopLevel::build(&lib, &descs, BuildParams::TOP_LEVEL);
+    let (mut packets, mut hits) = (0, 0);
+    for round in 0..400 {
+        let origin = rng.vec3(-25.0, 25.0);
+        let towards = rng.vec3(-20.0, 20.0) - origin;
+        // Camera-like packets (one origin, a narrow cone), wide ones, and ones whose
+        // origins differ (a lens).
+        let (jitter, spread) = [(0.0, 0.02), (0.0, 0.3), (0.5, 0.05)][round % 3];
+        let n = 1 + round % PACKET;
+        let rays = ray_packet(&mut rng, n, origin, jitter, towards.normalize(), spread);
+        let mut stats = TraversalStats::default();
+        let Some(found) = tlas.intersect_closest_packet(&lib, &rays, &mut stats, |_, _| true)
+        else {
+            continue;
+        };
+        packets += 1;
+        assert_eq!(stats.closest_rays, n as u64);
+        assert!(found[n..].iter().all(Option::is_none));
+        for (ray, got) in rays.iter().zip(&found) {
+            let expected = tlas.intersect_closest(&lib, ray, &mut stats, |_| true);
+            assert_eq!(
+                got.map(|h| (h.t, h.instance, h.triangle)),
+                expected.map(|h| (h.t, h.instance, h.triangle)),
+                "round {round}, ray {ray:?}"
+            );
+            hits += usize::from(got.is_some());
+        }
+    }
+    assert!(packets > 300, "only {packets} packets could be bounded");
+    assert!(
+        hits > 500,
+        "only {hits} hits: the test would not see a wrong walk"
+    );
+}
+
+#[test]
+fn packets_the_walk_cannot_bound_are_left_to_single_rays() {
+    let mut rng = TestRng::new(5);
+    let lib = random_library(&mut rng, 2, 50);
+    let descs = random_instances(&mut rng, 50, 2, (-0.5, 0.5));
+    let tlas = TopLevel::build(&lib, &descs, BuildParams::TOP_LEVEL);
+    let mut stats = TraversalStats::default();
+    let opposite = [
+        Ray::new(Vec3A::ZERO, Vec3A::new(1.0, 0.2, 0.3).normalize()),
+        Ray::new(Vec3A::ZERO, Vec3A::new(-1.0, 0.2, 0.3).normalize()),
+    ];
+    let parallel = [Ray::new(Vec3A::ZERO, Vec3A::X)];
+    let no_filter_calls = |_: usize, _: &sylva_engine::tlas::Candidate| -> bool {
+        panic!("a packet that cannot be bounded tests nothing")
+    };
+    for rays in [&opposite[..], &parallel[..], &[]] {
+        assert!(
+            tlas.intersect_closest_packet(&lib, rays, &mut stats, no_filter_calls)
+                .is_none()
+        );
+    }
+    assert_eq!(stats, TraversalStats::default());
 }
 
 #[test]

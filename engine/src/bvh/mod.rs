@@ -6,6 +6,7 @@
 use crate::fingerprint::Fingerprint;
 
 mod build;
+mod packet;
 mod refit;
 pub mod simd;
 mod traverse;
@@ -13,6 +14,7 @@ mod validate;
 mod wide;
 
 pub use build::{BOTTOM_GRID_FROM, BuildParams, BuildScratch, GRID_FROM};
+pub use packet::PACKET;
 pub use refit::RefitError;
 pub use traverse::{LeafVisit, NodeRay, TraversalStats};
 pub use validate::BvhReport;

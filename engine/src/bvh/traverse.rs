@@ -180,6 +180,23 @@ impl<F: FnMut(usize, usize, f32) -> (f32, bool)> LeafVisit for F {
     }
 }
 
+/// Puts `entry` into `hits[..=n]`, which holds `n` entries sorted farthest first by
+/// `t`, after every entry at least as far (so equal distances keep arrival order).
+#[inline(always)]
+pub(super) fn insert_farthest_first<T: Copy>(
+    hits: &mut [T; WIDTH],
+    n: usize,
+    entry: T,
+    t: impl Fn(&T) -> f32,
+) {
+    let mut i = n;
+    while i > 0 && t(&hits[i - 1]) < t(&entry) {
+        hits[i] = hits[i - 1];
+        i -= 1;
+    }
+    hits[i] = entry;
+}
+
 /// A pending subtree: a wide node (`count == 0`) or a leaf's slot range, with its entry
 /// distance.
 #[derive(Clone, Copy, Debug, Default)]
@@ -425,12 +442,7 @@ impl Bvh {
                     while mask != 0 {
                         let entry = child(mask.trailing_zeros() as usize);
                         mask &= mask - 1;
-                        let mut i = n;
-                        while i > 0 && hits[i - 1].t < entry.t {
-                            hits[i] = hits[i - 1];
-                            i -= 1;
-                        }
-                        hits[i] = entry;
+                        insert_farthest_first(&mut hits, n, entry, |e| e.t);
                         n += 1;
                     }
                     for entry in &hits[..n - 1] {

@@ -1,0 +1,281 @@
+//! One closest-hit walk for a packet of up to [`PACKET`] coherent rays (a camera's
+//! neighbouring pixels): every node is tested once for the whole packet, with
+//! interval arithmetic over the rays' origins and reciprocal directions, and each ray
+//! gets its own box test only at the leaves, so it enters just the leaves a walk of its
+//! own would enter.
+
+use super::traverse::{FAR_SCALE, NodeRay, entry_limit, insert_farthest_first};
+use super::{Bvh, TraversalStats, WIDTH, WideNode};
+use crate::math::Ray;
+use glam::Vec4;
+
+/// Rays a packet holds at most.
+pub const PACKET: usize = 16;
+
+/// Per axis, the smallest and largest origin and reciprocal direction over a packet's
+/// rays; every ray's reciprocal has one sign per axis (no ray runs parallel to an axis).
+#[derive(Clone, Copy, Debug)]
+struct PacketBound {
+    origin_lo: [f32; 3],
+    origin_hi: [f32; 3],
+    inv_lo: [f32; 3],
+    inv_hi: [f32; 3],
+}
+
+/// The packet's rays in structure-of-arrays form, four lanes at a time.
+#[derive(Clone, Copy, Debug)]
+struct PacketLanes {
+    origin: [[Vec4; PACKET / 4]; 3],
+    inv_dir: [[Vec4; PACKET / 4]; 3],
+}
+
+impl PacketBound {
+    /// The bound of `rays`, or `None` when some ray has an open slab (an axis-parallel
+    /// or non-finite ray) or the rays' directions differ in sign on some axis.
+    fn new(rays: &[NodeRay]) -> Option<Self> {
+        let first = rays.first()?;
+        let mut bound = Self {
+            origin_lo: first.origin,
+            origin_hi: first.origin,
+            inv_lo: first.inv_dir,
+            inv_hi: first.inv_dir,
+        };
+        for ray in rays {
+            if ray.axis_parallel || ray.near_is_max != first.near_is_max {
+                return None;
+            }
+            for axis in 0..3 {
+                let (o, inv) = (ray.origin[axis], ray.inv_dir[axis]);
+                if !o.is_finite() || !inv.is_finite() || inv == 0.0 {
+                    return None;
+                }
+                bound.origin_lo[axis] = bound.origin_lo[axis].min(o);
+                bound.origin_hi[axis] = bound.origin_hi[axis].max(o);
+                bound.inv_lo[axis] = bound.inv_lo[axis].min(inv);
+                bound.inv_hi[axis] = bound.inv_hi[axis].max(inv);
+            }
+        }
+        Some(bound)
+    }
+
+    /// Per lane of `node`, the least entry distance any ray of the packet can have and
+    /// whether some ray may enter the box before `limit`: a superset of the lanes each
+    /// ray's own slab test passes, since rounding is monotonic in each operand, so the
+    /// products at the interval corners bound every ray's rounded product.
+    #[inline(always)]
+    fn hit_children(&self, node: &WideNode, limit: f32) -> ([f32; WIDTH], u32) {
+        let mut near_out = [0.0; WIDTH];
+        let mut mask = 0;
+        for half in 0..WIDTH / 4 {
+            let lanes = |a: &[f32; WIDTH]| Vec4::from_slice(&a[half * 4..half * 4 + 4]);
+            let planes = [
+                (lanes(&node.min_x), lanes(&node.max_x)),
+                (lanes(&node.min_y), lanes(&node.max_y)),
+                (lanes(&node.min_z), lanes(&node.max_z)),
+            ];
+            let mut near = Vec4::ZERO;
+            let mut far = Vec4::INFINITY;
+            for (axis, (lower, upper)) in planes.into_iter().enumerate() {
+                let (o_lo, o_hi) = (
+                    Vec4::splat(self.origin_lo[axis]),
+                    Vec4::splat(self.origin_hi[axis]),
+                );
+                let (i_lo, i_hi) = (
+                    Vec4::splat(self.inv_lo[axis]),
+                    Vec4::splat(self.inv_hi[axis]),
+                );
+                let range = |plane: Vec4| {
+                    let (d_lo, d_hi) = (plane - o_hi, plane - o_lo);
+                    let (a, b, c, d) = (d_lo * i_lo, d_lo * i_hi, d_hi * i_lo, d_hi * i_hi);
+                    (a.min(b).min(c.min(d)), a.max(b).max(c.max(d)))
+                };
+                let (lo0, hi0) = range(lower);
+                let (lo1, hi1) = range(upper);
+                near = near.max(lo0.min(lo1));
+                far = far.min(hi0.max(hi1));
+            }
+            let far = far * FAR_SCALE;
+            let hit = near.cmple(far) & near.cmplt(Vec4::splat(limit));
+            near_out[half * 4..half * 4 + 4].copy_from_slice(&near.to_array());
+            mask |= hit.bitmask() << (half * 4);
+        }
+        (near_out, mask)
+    }
+}
+
+impl PacketLanes {
+    fn new(rays: &[NodeRay]) -> Self {
+        let mut origin = [[0.0f32; PACKET]; 3];
+        // Rays past the packet's end get a NaN reciprocal: their tests never pass.
+        let mut inv_dir = [[f32::NAN; PACKET]; 3];
+        for (i, ray) in rays.iter().enumerate() {
+            for axis in 0..3 {
+                origin[axis][i] = ray.origin[axis];
+                inv_dir[axis][i] = ray.inv_dir[axis];
+            }
+        }
+        let chunks = |values: &[f32; PACKET]| {
+            std::array::from_fn(|chunk| Vec4::from_slice(&values[chunk * 4..chunk * 4 + 4]))
+        };
+        Self {
+            origin: origin.each_ref().map(chunks),
+            inv_dir: inv_dir.each_ref().map(chunks),
+        }
+    }
+
+    /// Bit `i` set when ray `i` enters lane `lane` of `node` before its own limit
+    /// `limits[i]` (four rays to an entry, for as many rays as `limits` covers): each
+    /// ray's slab test with the same operations as its own walk's.
+    #[inline(always)]
+    fn hit_lane(&self, node: &WideNode, lane: usize, limits: &[Vec4]) -> u32 {
+        let planes = [
+            (node.min_x[lane], node.max_x[lane]),
+            (node.min_y[lane], node.max_y[lane]),
+            (node.min_z[lane], node.max_z[lane]),
+        ];
+        let mut mask = 0;
+        for (chunk, &limit) in limits.iter().enumerate() {
+            let slab = |axis: usize| {
+                let (lower, upper) = planes[axis];
+                let o = self.origin[axis][chunk];
+                let inv = self.inv_dir[axis][chunk];
+                (
+                    (Vec4::splat(lower) - o) * inv,
+                    (Vec4::splat(upper) - o) * inv,
+                )
+            };
+            let (x0, x1) = slab(0);
+            let (y0, y1) = slab(1);
+            let (z0, z1) = slab(2);
+            let t_near = x0.min(x1).max(y0.min(y1)).max(z0.min(z1).max(Vec4::ZERO));
+            let t_far = x0.max(x1).min(y0.max(y1)).min(z0.max(z1)) * FAR_SCALE;
+            let hit = t_near.cmple(t_far) & t_near.cmplt(limit);
+            mask |= hit.bitmask() << (chunk * 4);
+        }
+        mask
+    }
+}
+
+/// A pending subtree of the packet walk: an interior node, or a leaf lane of a node.
+#[derive(Clone, Copy, Debug)]
+struct PacketPending {
+    node: u32,
+    /// The leaf's lane in `node`, or [`INTERIOR`] for `node` itself.
+    lane: u32,
+    t: f32,
+}
+
+const INTERIOR: u32 = u32::MAX;
+
+impl Bvh {
+    /// Closest hits for the packet `rays` (at most [`PACKET`]): `test(slot, ray, t_max)`
+    /// tests leaf slot `slot` for ray `ray` (an index into `rays`) and returns its hit
+    /// distance when it is hit closer than `t_max` (and accepted). Each ray reaches the
+    /// leaves its own walk would (and possibly more, never fewer). Returns the rays'
+    /// final `t_max`, or `None` when the packet cannot be bounded (rays parallel to an
+    /// axis, non-finite, or with direction signs that differ): then nothing was tested.
+    pub fn traverse_closest_packet(
+        &self,
+        rays: &[Ray],
+        stats: &mut TraversalStats,
+        mut test: impl FnMut(usize, usize, f32) -> Option<f32>,
+    ) -> Option<[f32; PACKET]> {
+        let rays = &rays[..rays.len().min(PACKET)];
+        let first = rays.first()?;
+        let node_rays: [NodeRay; PACKET] =
+            std::array::from_fn(|i| NodeRay::new(rays.get(i).unwrap_or(first)));
+        let node_rays = &node_rays[..rays.len()];
+        let bound = PacketBound::new(node_rays)?;
+        let lanes = PacketLanes::new(node_rays);
+        let mut t_max = [f32::NEG_INFINITY; PACKET];
+        for (t, ray) in t_max.iter_mut().zip(rays) {
+            *t = ray.t_max;
+        }
+        if self.wide.is_empty() {
+            return Some(t_max);
+        }
+        // The per-ray limits as a ray's own walk computes them.
+        let mut limits: [Vec4; PACKET / 4] = std::array::from_fn(|chunk| {
+            Vec4::from_array(std::array::from_fn(|i| entry_limit(t_max[chunk * 4 + i])))
+        });
+        let chunks = rays.len().div_ceil(4);
+        let packet_limit = |limits: &[Vec4; PACKET / 4]| {
+            limits
+                .iter()
+                .fold(f32::NEG_INFINITY, |m, l| m.max(l.max_element()))
+        };
+        let mut limit = packet_limit(&limits);
+        let (mut nodes, mut primitives) = (0u64, 0u64);
+        let mut stack: Vec<PacketPending> = Vec::with_capacity(64);
+        let mut current = Some(PacketPending {
+            node: 0,
+            lane: INTERIOR,
+            t: 0.0,
+        });
+        loop {
+            let entry = match current.take() {
+                Some(entry) => entry,
+                None => loop {
+                    match stack.pop() {
+                        Some(entry) if entry.t < limit => break entry,
+                        Some(_) => {}
+                        None => {
+                            stats.nodes_visited += nodes;
+                            stats.primitive_tests += primitives;
+                            return Some(t_max);
+                        }
+                    }
+                },
+            };
+            let node = &self.wide[entry.node as usize];
+            if entry.lane != INTERIOR {
+                let lane = entry.lane as usize;
+                let mut rays_in = lanes.hit_lane(node, lane, &limits[..chunks]);
+                let (first, count) = (node.children[lane] as usize, node.counts[lane] as usize);
+                while rays_in != 0 {
+                    let ray = rays_in.trailing_zeros() as usize;
+                    rays_in &= rays_in - 1;
+                    primitives += count as u64;
+                    for slot in first..first + count {
+                        if let Some(t) = test(slot, ray, t_max[ray]) {
+                            t_max[ray] = t;
+                        }
+                    }
+                    let mut chunk = limits[ray / 4].to_array();
+                    chunk[ray % 4] = entry_limit(t_max[ray]);
+                    limits[ray / 4] = Vec4::from_array(chunk);
+                }
+                limit = packet_limit(&limits);
+                continue;
+            }
+            nodes += 1;
+            let (t, mut mask) = bound.hit_children(node, limit);
+            // Nearest first: sorted by entry distance, farthest at the front.
+            let mut hits = [entry; WIDTH];
+            let mut n = 0;
+            while mask != 0 {
+                let lane = mask.trailing_zeros() as usize;
+                mask &= mask - 1;
+                let child = if node.counts[lane] > 0 {
+                    PacketPending {
+                        node: entry.node,
+                        lane: lane as u32,
+                        t: t[lane],
+                    }
+                } else {
+                    PacketPending {
+                        node: node.children[lane],
+                        lane: INTERIOR,
+                        t: t[lane],
+                    }
+                };
+                insert_farthest_first(&mut hits, n, child, |e| e.t);
+                n += 1;
+            }
+            if n > 0 {
+                stack.extend_from_slice(&hits[..n - 1]);
+                current = Some(hits[n - 1]);
+            }
+        }
+    }
+}
