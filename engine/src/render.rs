@@ -467,17 +467,7 @@ impl<'a> RenderScene<'a> {
                         accept
                     },
                 );
-                let t_hit = hit.map_or(f32::INFINITY, |h| h.t);
-                let nearer = holes.sorted_before(t_hit);
-                if let Some(&(_, hole)) = first_opaque_hole(curve, nearer) {
-                    filter.holes_passed = nearer.iter().take_while(|h| h.0 < hole.t).count() as u64;
-                    filter.opaque_holes = 1;
-                    Some((hole, true))
-                } else {
-                    filter.holes_passed = nearer.len() as u64;
-                    filter.opaque_holes = u64::from(hit.is_some() && last_accepted_hole);
-                    hit.map(|hit| (hit, last_accepted_hole))
-                }
+                adaptive_result(curve, &mut holes, hit, last_accepted_hole, &mut filter)
             }
         };
         filter.closest_filter_rejections = filter.filter_rejections;
@@ -852,8 +842,9 @@ impl<'a> RenderScene<'a> {
 
     /// The closest hits of a packet of up to [`PACKET`] camera rays, as
     /// [`closest_adaptive`](Self::closest_adaptive) finds them one by one, from one
-    /// top-level walk; `None` when the packet cannot be traced together (adaptive
-    /// transparency, or rays a packet cannot bound): then they go one by one.
+    /// top-level walk; `None` when one packet cannot bound the rays (see
+    /// [`Bvh::traverse_closest_packet`](crate::bvh::Bvh::traverse_closest_packet)):
+    /// then they go one by one.
     pub fn closest_packet(
         &self,
         rays: &[Ray],
@@ -954,18 +945,8 @@ impl<'a> RenderScene<'a> {
         )?;
         let mut results = [None; PACKET];
         for (ray, result) in results.iter_mut().enumerate().take(rays.len()) {
-            let hit = hits[ray];
-            let t_hit = hit.map_or(f32::INFINITY, |h| h.t);
-            let nearer = holes[ray].sorted_before(t_hit);
-            *result = if let Some(&(_, hole)) = first_opaque_hole(curve, nearer) {
-                filter.holes_passed += nearer.iter().take_while(|h| h.0 < hole.t).count() as u64;
-                filter.opaque_holes += 1;
-                Some((hole, true))
-            } else {
-                filter.holes_passed += nearer.len() as u64;
-                filter.opaque_holes += u64::from(hit.is_some() && last_accepted_hole[ray]);
-                hit.map(|hit| (hit, last_accepted_hole[ray]))
-            };
+            let (hit, last) = (hits[ray], last_accepted_hole[ray]);
+            *result = adaptive_result(curve, &mut holes[ray], hit, last, &mut filter);
         }
         filter.closest_filter_rejections = filter.filter_rejections;
         stats.add(&filter);
@@ -1044,6 +1025,29 @@ impl<'a> RenderScene<'a> {
                 shader: surface.shader,
             },
         }
+    }
+}
+
+/// A closest-hit query's answer under adaptive transparency, from the hit the walk
+/// accepted (`last_accepted_hole`: it was a hole taken as opaque) and the holes it kept:
+/// the nearest hole the curve turns opaque, if one lies before that hit. Adds the holes
+/// passed and the holes made opaque to `filter`.
+fn adaptive_result(
+    curve: &TransparencyCurve,
+    holes: &mut CandidateHoles,
+    hit: Option<Hit>,
+    last_accepted_hole: bool,
+    filter: &mut TraversalStats,
+) -> Option<(Hit, bool)> {
+    let nearer = holes.sorted_before(hit.map_or(f32::INFINITY, |h| h.t));
+    if let Some(&(_, hole)) = first_opaque_hole(curve, nearer) {
+        filter.holes_passed += nearer.iter().take_while(|h| h.0 < hole.t).count() as u64;
+        filter.opaque_holes += 1;
+        Some((hole, true))
+    } else {
+        filter.holes_passed += nearer.len() as u64;
+        filter.opaque_holes += u64::from(hit.is_some() && last_accepted_hole);
+        hit.map(|hit| (hit, last_accepted_hole))
     }
 }
 
