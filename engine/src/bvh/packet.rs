@@ -4,7 +4,7 @@
 //! gets its own box test only at the leaves, so it enters just the leaves a walk of its
 //! own would enter.
 
-use super::traverse::{FAR_SCALE, NodeRay, entry_limit, insert_farthest_first};
+use super::traverse::{FAR_SCALE, NodeRay, Stack, entry_limit, insert_farthest_first};
 use super::{Bvh, TraversalStats, WIDTH, WideNode};
 use crate::math::Ray;
 use glam::Vec4;
@@ -157,7 +157,7 @@ impl PacketLanes {
 }
 
 /// A pending subtree of the packet walk: an interior node, or a leaf lane of a node.
-#[derive(Clone, Copy, Debug)]
+#[derive(Clone, Copy, Debug, Default)]
 struct PacketPending {
     node: u32,
     /// The leaf's lane in `node`, or [`INTERIOR`] for `node` itself.
@@ -206,7 +206,7 @@ impl Bvh {
         };
         let mut limit = packet_limit(&limits);
         let (mut nodes, mut primitives) = (0u64, 0u64);
-        let mut stack: Vec<PacketPending> = Vec::with_capacity(64);
+        let mut stack = Stack::<PacketPending>::new();
         let mut current = Some(PacketPending {
             node: 0,
             lane: INTERIOR,
@@ -273,7 +273,7 @@ impl Bvh {
                 n += 1;
             }
             if n > 0 {
-                stack.extend_from_slice(&hits[..n - 1]);
+                hits[..n - 1].iter().for_each(|&entry| stack.push(entry));
                 current = Some(hits[n - 1]);
             }
         }

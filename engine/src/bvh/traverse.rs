@@ -210,25 +210,25 @@ struct Pending {
 /// the worst case cost more than the traversal itself (every instance runs one).
 const INLINE_STACK: usize = 24;
 
-/// The traversal stack: a small inline array with a heap spill for deep trees.
-struct Stack {
-    inline: [Pending; INLINE_STACK],
+/// A traversal stack: a small inline array with a heap spill for deep trees.
+pub(super) struct Stack<T> {
+    inline: [T; INLINE_STACK],
     len: usize,
-    spill: Vec<Pending>,
+    spill: Vec<T>,
 }
 
-impl Stack {
+impl<T: Copy + Default> Stack<T> {
     #[inline(always)]
-    fn new() -> Self {
+    pub(super) fn new() -> Self {
         Self {
-            inline: [Pending::default(); INLINE_STACK],
+            inline: [T::default(); INLINE_STACK],
             len: 0,
             spill: Vec::new(),
         }
     }
 
     #[inline(always)]
-    fn push(&mut self, entry: Pending) {
+    pub(super) fn push(&mut self, entry: T) {
         if self.len < INLINE_STACK {
             self.inline[self.len] = entry;
         } else {
@@ -238,7 +238,7 @@ impl Stack {
     }
 
     #[inline(always)]
-    fn pop(&mut self) -> Option<Pending> {
+    pub(super) fn pop(&mut self) -> Option<T> {
         if self.len == 0 {
             return None;
         }
