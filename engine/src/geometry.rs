@@ -2,7 +2,7 @@
 //! instance, collected in the [`GeometryLibrary`].
 
 use crate::bvh::simd::{NodeKernel, prefetch, with_node_kernel};
-use crate::bvh::{BuildParams, Bvh, LeafVisit, PADDING, TraversalStats};
+use crate::bvh::{BuildParams, Bvh, LeafVisit, PACKET, PADDING, TraversalStats};
 use crate::math::{Aabb, Ray};
 use crate::mesh::{MeshError, TriangleMesh};
 use crate::support::SupportTable;
@@ -140,6 +140,65 @@ impl Geometry {
         };
         kernel.traverse(&self.bvh, ray, stats, &mut leaves);
         leaves.best
+    }
+
+    /// [`intersect_closest_packet_with`](Self::intersect_closest_packet_with) on this CPU's
+    /// best kernel.
+    #[inline]
+    pub fn intersect_closest_packet(
+        &self,
+        rays: &[Ray],
+        stats: &mut TraversalStats,
+        accept: impl FnMut(usize, u32, &TriangleHit) -> bool,
+    ) -> Option<[Option<GeometryHit>; PACKET]> {
+        with_node_kernel!(kernel => self.intersect_closest_packet_with(kernel, rays, stats, accept))
+    }
+
+    /// [`intersect_closest_with`](Self::intersect_closest_with) for a packet of up to
+    /// [`PACKET`] coherent rays that start on no surface, in one walk: each ray's
+    /// closest hit that `accept(ray, triangle, hit)` keeps (`ray` an index into `rays`),
+    /// found by the same leaf tests as its own walk. `None` when the rays cannot be
+    /// bounded as a packet (see [`Bvh::traverse_closest_packet`]): nothing was tested.
+    #[inline(always)]
+    pub fn intersect_closest_packet_with(
+        &self,
+        kernel: impl NodeKernel,
+        rays: &[Ray],
+        stats: &mut TraversalStats,
+        mut accept: impl FnMut(usize, u32, &TriangleHit) -> bool,
+    ) -> Option<[Option<GeometryHit>; PACKET]> {
+        let mut watertight: [Option<WatertightRay>; PACKET] = [None; PACKET];
+        let mut best = [None; PACKET];
+        let mesh = &self.mesh;
+        self.bvh.traverse_closest_packet(
+            rays,
+            stats,
+            |first, count, mut rays_in, _, t_max| {
+                while rays_in != 0 {
+                    let ray = rays_in.trailing_zeros() as usize;
+                    rays_in &= rays_in - 1;
+                    let wray =
+                        &*watertight[ray].get_or_insert_with(|| WatertightRay::new(&rays[ray]));
+                    self.for_hits(
+                        kernel,
+                        wray,
+                        first,
+                        count,
+                        &mut t_max[ray],
+                        |triangle, hit, t| {
+                            if accept(ray, triangle, hit) {
+                                keep_closest(mesh, &mut best[ray], triangle, hit, t);
+                            }
+                            false
+                        },
+                    );
+                }
+            },
+            // Leaf lanes put off by the packet's box test are often entered by no ray:
+            // their blocks are not asked for ahead.
+            |_| {},
+        )?;
+        Some(best)
     }
 
     /// Triangle block `block.index`, when the geometry has it.
@@ -291,6 +350,27 @@ impl<'a, K: NodeKernel> LeafRay<'a, K> {
     }
 }
 
+/// Takes the accepted hit `hit` on `triangle` as the ray's closest so far, and shortens
+/// the ray to it.
+#[inline(always)]
+fn keep_closest(
+    mesh: &TriangleMesh,
+    best: &mut Option<GeometryHit>,
+    triangle: u32,
+    hit: &TriangleHit,
+    t_max: &mut f32,
+) {
+    *best = Some(GeometryHit {
+        triangle,
+        hit: *hit,
+    });
+    *t_max = hit.t;
+    // Shading the hit starts with its vertex indices: ask for them while the walk goes on.
+    if let Some(indices) = mesh.indices.get(triangle as usize) {
+        prefetch(indices);
+    }
+}
+
 /// The closest-hit leaf test of a bottom level, inlined into the traversal loop.
 struct ClosestLeaves<'a, K, A> {
     leaf: LeafRay<'a, K>,
@@ -312,16 +392,7 @@ impl<K: NodeKernel, A: FnMut(u32, &TriangleHit) -> bool> LeafVisit for ClosestLe
         let mesh = &leaf.geometry.mesh;
         leaf.for_hits(first, count, &mut t_max, |triangle, hit, t_max| {
             if triangle != *leaving && accept(triangle, hit) {
-                *best = Some(GeometryHit {
-                    triangle,
-                    hit: *hit,
-                });
-                *t_max = hit.t;
-                // Shading the hit starts with its vertex indices: ask for them while the
-                // walk goes on.
-                if let Some(indices) = mesh.indices.get(triangle as usize) {
-                    prefetch(indices);
-                }
+                keep_closest(mesh, best, triangle, hit, t_max);
             }
             false
         });

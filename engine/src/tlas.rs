@@ -9,6 +9,26 @@ use crate::triangle::TriangleHit;
 use glam::{Affine3A, Vec3A};
 use rayon::prelude::*;
 
+/// The widest a camera packet may be where it enters an instance, as a share of the
+/// instance's diagonal, for its rays to walk the instance's bottom level together: a
+/// packet's box test bounds every ray between its outermost ones, and over a plant
+/// that is small on screen that region holds far more nodes than the rays' own paths
+/// (`paper` interactive: +73 % instructions with every entry shared, −0.7 to +0.8 %
+/// from 1/100 to 1/32; the anchor meadow's camera rays −6.2 % at 1/32).
+const SHARED_WALK_WIDTH: f32 = 1.0 / 32.0;
+
+/// The indices of the bits set in `mask`, lowest first.
+#[inline(always)]
+fn mask_bits(mut mask: u32) -> impl Iterator<Item = usize> {
+    std::iter::from_fn(move || {
+        (mask != 0).then(|| {
+            let bit = mask.trailing_zeros() as usize;
+            mask &= mask - 1;
+            bit
+        })
+    })
+}
+
 /// An instance as the caller describes it.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct InstanceDesc {
@@ -232,6 +252,20 @@ fn surely_invertible(transform: &Affine3A) -> bool {
         && largest <= 1e6
         && transform.translation.abs().max_element() <= 1e12
         && m.determinant().abs() >= 1e-12
+}
+
+/// About the length of `geometry`'s box diagonal in world space, for an instance
+/// placed by the inverse of `world_to_object` (exact for rotations with uniform scale).
+#[inline(always)]
+fn world_diagonal(geometry: &Geometry, world_to_object: &Affine3A) -> f32 {
+    let m = &world_to_object.matrix3;
+    let shrink = m
+        .x_axis
+        .length()
+        .max(m.y_axis.length())
+        .max(m.z_axis.length());
+    let bounds = geometry.bounds();
+    (bounds.max - bounds.min).length() / shrink
 }
 
 /// An instance's world box, or why it cannot enter the tree.
@@ -590,24 +624,82 @@ impl TopLevel {
     ) -> Option<[Option<Hit>; PACKET]> {
         let mut inner = TraversalStats::default();
         let mut best = [None; PACKET];
-        self.bvh
-            .traverse_closest_packet(rays, stats, |slot, ray, t_max| {
-                let record = &self.instances[slot];
-                let geometry = &library.geometries[record.geometry.0 as usize];
-                let local = Ray {
-                    t_max,
-                    ..rays[ray].transformed(&record.world_to_object())
-                };
-                let found = geometry.intersect_closest_with(
-                    kernel,
-                    &local,
-                    None,
-                    &mut inner,
-                    |triangle, hit| filter(ray, &Candidate::on(slot, record, triangle, hit)),
-                )?;
-                best[ray] = Some(Candidate::on(slot, record, found.triangle, &found.hit));
-                Some(found.hit.t)
-            })?;
+        // The packet's spread of directions: its width per unit of distance.
+        let first = rays
+            .first()
+            .map_or(Vec3A::X, |ray| ray.direction.normalize_or_zero());
+        let spread = rays.iter().fold(0.0f32, |widest, ray| {
+            widest.max((ray.direction.normalize_or_zero() - first).length())
+        });
+        self.bvh.traverse_closest_packet(
+            rays,
+            stats,
+            |first, count, rays_in, entry_t, t_max| {
+                for slot in first..first + count {
+                    let record = &self.instances[slot];
+                    let geometry = &library.geometries[record.geometry.0 as usize];
+                    let world_to_object = record.world_to_object();
+                    let local = |ray: usize, t_max: f32| Ray {
+                        t_max,
+                        ..rays[ray].transformed(&world_to_object)
+                    };
+                    let shared = rays_in.count_ones() > 1
+                        && spread * entry_t
+                            <= SHARED_WALK_WIDTH * world_diagonal(geometry, &world_to_object);
+                    let mut alone = rays_in;
+                    if shared {
+                        let mut group = [0u8; PACKET];
+                        let mut local_rays = [Ray::new(Vec3A::ZERO, Vec3A::X); PACKET];
+                        for (i, ray) in mask_bits(rays_in).enumerate() {
+                            group[i] = ray as u8;
+                            local_rays[i] = local(ray, t_max[ray]);
+                        }
+                        let n = rays_in.count_ones() as usize;
+                        let found = geometry.intersect_closest_packet_with(
+                            kernel,
+                            &local_rays[..n],
+                            &mut inner,
+                            |i, triangle, hit| {
+                                let ray = usize::from(group[i]);
+                                filter(ray, &Candidate::on(slot, record, triangle, hit))
+                            },
+                        );
+                        if let Some(found) = found {
+                            alone = 0;
+                            for (&ray, found) in group.iter().zip(&found).take(n) {
+                                if let Some(found) = found {
+                                    let ray = usize::from(ray);
+                                    best[ray] = Some(Candidate::on(
+                                        slot,
+                                        record,
+                                        found.triangle,
+                                        &found.hit,
+                                    ));
+                                    t_max[ray] = found.hit.t;
+                                }
+                            }
+                        }
+                    }
+                    for ray in mask_bits(alone) {
+                        let found = geometry.intersect_closest_with(
+                            kernel,
+                            &local(ray, t_max[ray]),
+                            None,
+                            &mut inner,
+                            |triangle, hit| {
+                                filter(ray, &Candidate::on(slot, record, triangle, hit))
+                            },
+                        );
+                        if let Some(found) = found {
+                            best[ray] =
+                                Some(Candidate::on(slot, record, found.triangle, &found.hit));
+                            t_max[ray] = found.hit.t;
+                        }
+                    }
+                }
+            },
+            |slot| prefetch(&self.instances[slot]),
+        )?;
         stats.closest_rays += rays.len().min(PACKET) as u64;
         stats.add(&inner);
         Some(best)

@@ -491,6 +491,12 @@ fn ray_packet(
         .collect()
 }
 
+/// A hit filter that differs from ray to ray of a packet: a walk that mixed up which ray
+/// a candidate belongs to would give some ray another's answer.
+fn keeps(ray: usize, triangle: u32) -> bool {
+    !(triangle as usize + ray).is_multiple_of(3)
+}
+
 #[test]
 fn packet_walks_find_each_rays_own_closest_hit() {
     let mut rng = TestRng::new(77);
@@ -503,19 +509,21 @@ fn packet_walks_find_each_rays_own_closest_hit() {
         let towards = rng.vec3(-20.0, 20.0) - origin;
         // Camera-like packets (one origin, a narrow cone), wide ones, and ones whose
         // origins differ (a lens).
-        let (jitter, spread) = [(0.0, 0.02), (0.0, 0.3), (0.5, 0.05)][round % 3];
+        // The narrowest are narrow enough to walk the bottom levels together too.
+        let (jitter, spread) = [(0.0, 0.02), (0.0, 0.3), (0.5, 0.05), (0.0, 0.0005)][round % 4];
         let n = 1 + round % PACKET;
         let rays = ray_packet(&mut rng, n, origin, jitter, towards.normalize(), spread);
         let mut stats = TraversalStats::default();
-        let Some(found) = tlas.intersect_closest_packet(&lib, &rays, &mut stats, |_, _| true)
+        let Some(found) =
+            tlas.intersect_closest_packet(&lib, &rays, &mut stats, |ray, c| keeps(ray, c.triangle))
         else {
             continue;
         };
         packets += 1;
         assert_eq!(stats.closest_rays, n as u64);
         assert!(found[n..].iter().all(Option::is_none));
-        for (ray, got) in rays.iter().zip(&found) {
-            let expected = tlas.intersect_closest(&lib, ray, &mut stats, |_| true);
+        for (i, (ray, got)) in rays.iter().zip(&found).enumerate() {
+            let expected = tlas.intersect_closest(&lib, ray, &mut stats, |c| keeps(i, c.triangle));
             assert_eq!(
                 got.map(|h| (h.t, h.instance, h.triangle)),
                 expected.map(|h| (h.t, h.instance, h.triangle)),
@@ -527,6 +535,54 @@ fn packet_walks_find_each_rays_own_closest_hit() {
     assert!(packets > 300, "only {packets} packets could be bounded");
     assert!(
         hits > 500,
+        "only {hits} hits: the test would not see a wrong walk"
+    );
+}
+
+#[test]
+fn bottom_level_packets_find_each_rays_own_closest_accepted_hit() {
+    let mut rng = TestRng::new(91);
+    let geometry = Geometry::new(
+        "dense",
+        random_mesh(&mut rng, 3000, 2.0, 0.3),
+        BuildParams::BOTTOM_LEVEL,
+    )
+    .unwrap();
+    let (mut packets, mut hits) = (0, 0);
+    for round in 0..300 {
+        let origin = rng.vec3(-6.0, 6.0);
+        let towards = rng.vec3(-1.5, 1.5) - origin;
+        let (jitter, spread) = [(0.0, 0.01), (0.0, 0.2), (0.3, 0.05)][round % 3];
+        let n = 2 + round % (PACKET - 1);
+        let mut rays = ray_packet(&mut rng, n, origin, jitter, towards.normalize(), spread);
+        // Some rays already have a nearer hit elsewhere.
+        for ray in rays.iter_mut().step_by(4) {
+            ray.t_max = rng.range(1.0, 9.0);
+        }
+        let mut stats = TraversalStats::default();
+        let Some(found) =
+            geometry.intersect_closest_packet(&rays, &mut stats, |ray, triangle, _| {
+                keeps(ray, triangle)
+            })
+        else {
+            continue;
+        };
+        packets += 1;
+        assert!(found[n..].iter().all(Option::is_none));
+        for (i, (ray, got)) in rays.iter().zip(&found).enumerate() {
+            let expected =
+                geometry.intersect_closest(ray, &mut stats, |triangle, _| keeps(i, triangle));
+            assert_eq!(
+                got.map(|h| (h.hit.t, h.triangle)),
+                expected.map(|h| (h.hit.t, h.triangle)),
+                "round {round}, ray {i}: {ray:?}"
+            );
+            hits += usize::from(got.is_some());
+        }
+    }
+    assert!(packets > 250, "only {packets} packets could be bounded");
+    assert!(
+        hits > 1000,
         "only {hits} hits: the test would not see a wrong walk"
     );
 }

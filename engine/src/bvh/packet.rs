@@ -2,8 +2,11 @@
 //! neighbouring pixels): every node is tested once for the whole packet, with
 //! interval arithmetic over the rays' origins and reciprocal directions, and each ray
 //! gets its own box test only at the leaves, so it enters just the leaves a walk of its
-//! own would enter.
+//! own would enter. Rays from one origin (a pinhole camera's) get a cheaper bound. The
+//! top level hands the rays that enter an instance together to its bottom level as a
+//! packet again, when they are narrow enough there.
 
+use super::simd::{prefetch_children, prefetch_node};
 use super::traverse::{FAR_SCALE, NodeRay, Stack, entry_limit, insert_farthest_first};
 use super::{Bvh, TraversalStats, WIDTH, WideNode};
 use crate::math::Ray;
@@ -20,6 +23,11 @@ struct PacketBound {
     origin_hi: [f32; 3],
     inv_lo: [f32; 3],
     inv_hi: [f32; 3],
+    /// All rays start at the same point (a pinhole camera's): each plane's distance
+    /// from it is one value, and only the reciprocals' interval remains.
+    common_origin: bool,
+    /// Per axis, whether the rays meet a box's upper plane first (all alike).
+    near_is_max: [bool; 3],
 }
 
 /// The packet's rays in structure-of-arrays form, four lanes at a time.
@@ -39,6 +47,8 @@ impl PacketBound {
             origin_hi: first.origin,
             inv_lo: first.inv_dir,
             inv_hi: first.inv_dir,
+            common_origin: true,
+            near_is_max: first.near_is_max,
         };
         for ray in rays {
             if ray.axis_parallel || ray.near_is_max != first.near_is_max {
@@ -54,6 +64,7 @@ impl PacketBound {
                 bound.inv_lo[axis] = bound.inv_lo[axis].min(inv);
                 bound.inv_hi[axis] = bound.inv_hi[axis].max(inv);
             }
+            bound.common_origin &= ray.origin == first.origin;
         }
         Some(bound)
     }
@@ -64,6 +75,9 @@ impl PacketBound {
     /// products at the interval corners bound every ray's rounded product.
     #[inline(always)]
     fn hit_children(&self, node: &WideNode, limit: f32) -> ([f32; WIDTH], u32) {
+        if self.common_origin {
+            return self.hit_children_from_one_origin(node, limit);
+        }
         let mut near_out = [0.0; WIDTH];
         let mut mask = 0;
         for half in 0..WIDTH / 4 {
@@ -93,6 +107,48 @@ impl PacketBound {
                 let (lo1, hi1) = range(upper);
                 near = near.max(lo0.min(lo1));
                 far = far.min(hi0.max(hi1));
+            }
+            let far = far * FAR_SCALE;
+            let hit = near.cmple(far) & near.cmplt(Vec4::splat(limit));
+            near_out[half * 4..half * 4 + 4].copy_from_slice(&near.to_array());
+            mask |= hit.bitmask() << (half * 4);
+        }
+        (near_out, mask)
+    }
+
+    /// [`hit_children`](Self::hit_children) for rays from one origin: the distance from
+    /// it to each plane is the same value for every ray, and the rays meet the same
+    /// plane of each axis first, so a ray's near (far) distance on an axis is that
+    /// plane's distance times its reciprocal, and the two ends of the reciprocals'
+    /// interval bound it from both sides (rounding is monotonic in each operand).
+    #[inline(always)]
+    fn hit_children_from_one_origin(&self, node: &WideNode, limit: f32) -> ([f32; WIDTH], u32) {
+        let mut near_out = [0.0; WIDTH];
+        let mut mask = 0;
+        let planes = [
+            (&node.min_x, &node.max_x),
+            (&node.min_y, &node.max_y),
+            (&node.min_z, &node.max_z),
+        ];
+        for half in 0..WIDTH / 4 {
+            let lanes = |a: &[f32; WIDTH]| Vec4::from_slice(&a[half * 4..half * 4 + 4]);
+            let mut near = Vec4::ZERO;
+            let mut far = Vec4::INFINITY;
+            for (axis, &(lower, upper)) in planes.iter().enumerate() {
+                let (near_plane, far_plane) = if self.near_is_max[axis] {
+                    (upper, lower)
+                } else {
+                    (lower, upper)
+                };
+                let origin = Vec4::splat(self.origin_lo[axis]);
+                let (i_lo, i_hi) = (
+                    Vec4::splat(self.inv_lo[axis]),
+                    Vec4::splat(self.inv_hi[axis]),
+                );
+                let to_near = lanes(near_plane) - origin;
+                let to_far = lanes(far_plane) - origin;
+                near = near.max((to_near * i_lo).min(to_near * i_hi));
+                far = far.min((to_far * i_lo).max(to_far * i_hi));
             }
             let far = far * FAR_SCALE;
             let hit = near.cmple(far) & near.cmplt(Vec4::splat(limit));
@@ -168,17 +224,23 @@ struct PacketPending {
 const INTERIOR: u32 = u32::MAX;
 
 impl Bvh {
-    /// Closest hits for the packet `rays` (at most [`PACKET`]): `test(slot, ray, t_max)`
-    /// tests leaf slot `slot` for ray `ray` (an index into `rays`) and returns its hit
-    /// distance when it is hit closer than `t_max` (and accepted). Each ray reaches the
-    /// leaves its own walk would (and possibly more, never fewer). Returns the rays'
-    /// final `t_max`, or `None` when the packet cannot be bounded (rays parallel to an
-    /// axis, non-finite, or with direction signs that differ): then nothing was tested.
+    /// Closest hits for the packet `rays` (at most [`PACKET`]): `visit(first, count,
+    /// rays_in, entry_t, t_max)` tests the leaf over slots `first .. first + count` for
+    /// the rays whose bits are set in `rays_in` (bit `i` for `rays[i]`), each as its own
+    /// walk would test the leaf, lowering `t_max[i]` to the distance of a closer accepted
+    /// hit; `entry_t` is at most any of those rays' entry distance into the leaf's box.
+    /// Each ray reaches the leaves its own walk would (and possibly more, never fewer).
+    /// `prefetch(slot)` asks for the memory `visit` will read for a leaf starting at
+    /// `slot` when that leaf is put off behind a nearer child. Returns the rays' final
+    /// `t_max`, or `None` when the packet cannot be bounded (rays parallel to an axis,
+    /// non-finite, or with direction signs that differ): then nothing was tested.
+    #[inline]
     pub fn traverse_closest_packet(
         &self,
         rays: &[Ray],
         stats: &mut TraversalStats,
-        mut test: impl FnMut(usize, usize, f32) -> Option<f32>,
+        mut visit: impl FnMut(usize, usize, u32, f32, &mut [f32; PACKET]),
+        prefetch: impl Fn(usize),
     ) -> Option<[f32; PACKET]> {
         let rays = &rays[..rays.len().min(PACKET)];
         let first = rays.first()?;
@@ -195,9 +257,12 @@ impl Bvh {
             return Some(t_max);
         }
         // The per-ray limits as a ray's own walk computes them.
-        let mut limits: [Vec4; PACKET / 4] = std::array::from_fn(|chunk| {
-            Vec4::from_array(std::array::from_fn(|i| entry_limit(t_max[chunk * 4 + i])))
-        });
+        let limits_of = |t_max: &[f32; PACKET]| -> [Vec4; PACKET / 4] {
+            std::array::from_fn(|chunk| {
+                Vec4::from_array(std::array::from_fn(|i| entry_limit(t_max[chunk * 4 + i])))
+            })
+        };
+        let mut limits = limits_of(&t_max);
         let chunks = rays.len().div_ceil(4);
         let packet_limit = |limits: &[Vec4; PACKET / 4]| {
             limits
@@ -230,25 +295,18 @@ impl Bvh {
             let node = &self.wide[entry.node as usize];
             if entry.lane != INTERIOR {
                 let lane = entry.lane as usize;
-                let mut rays_in = lanes.hit_lane(node, lane, &limits[..chunks]);
-                let (first, count) = (node.children[lane] as usize, node.counts[lane] as usize);
-                while rays_in != 0 {
-                    let ray = rays_in.trailing_zeros() as usize;
-                    rays_in &= rays_in - 1;
-                    primitives += count as u64;
-                    for slot in first..first + count {
-                        if let Some(t) = test(slot, ray, t_max[ray]) {
-                            t_max[ray] = t;
-                        }
-                    }
-                    let mut chunk = limits[ray / 4].to_array();
-                    chunk[ray % 4] = entry_limit(t_max[ray]);
-                    limits[ray / 4] = Vec4::from_array(chunk);
+                let rays_in = lanes.hit_lane(node, lane, &limits[..chunks]);
+                if rays_in != 0 {
+                    let (first, count) = (node.children[lane] as usize, node.counts[lane]);
+                    primitives += u64::from(rays_in.count_ones() * count);
+                    visit(first, count as usize, rays_in, entry.t, &mut t_max);
+                    limits = limits_of(&t_max);
+                    limit = packet_limit(&limits);
                 }
-                limit = packet_limit(&limits);
                 continue;
             }
             nodes += 1;
+            prefetch_children(node);
             let (t, mut mask) = bound.hit_children(node, limit);
             // Nearest first: sorted by entry distance, farthest at the front.
             let mut hits = [entry; WIDTH];
@@ -273,7 +331,15 @@ impl Bvh {
                 n += 1;
             }
             if n > 0 {
-                hits[..n - 1].iter().for_each(|&entry| stack.push(entry));
+                for &entry in &hits[..n - 1] {
+                    // Node loads that miss the cache are what a walk waits on most.
+                    if entry.lane == INTERIOR {
+                        prefetch_node(&self.wide[entry.node as usize]);
+                    } else {
+                        prefetch(node.children[entry.lane as usize] as usize);
+                    }
+                    stack.push(entry);
+                }
                 current = Some(hits[n - 1]);
             }
         }
