@@ -170,7 +170,8 @@ impl Geometry {
         let mut watertight: [Option<WatertightRay>; PACKET] = [None; PACKET];
         let mut best = [None; PACKET];
         let mesh = &self.mesh;
-        self.bvh.traverse_closest_packet(
+        kernel.traverse_packet(
+            &self.bvh,
             rays,
             stats,
             |first, count, mut rays_in, _, t_max| {

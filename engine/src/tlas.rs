@@ -631,7 +631,8 @@ impl TopLevel {
         let spread = rays.iter().fold(0.0f32, |widest, ray| {
             widest.max((ray.direction.normalize_or_zero() - first).length())
         });
-        self.bvh.traverse_closest_packet(
+        kernel.traverse_packet(
+            &self.bvh,
             rays,
             stats,
             |first, count, rays_in, entry_t, t_max| {

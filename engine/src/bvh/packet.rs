@@ -6,7 +6,7 @@
 //! top level hands the rays that enter an instance together to its bottom level as a
 //! packet again, when they are narrow enough there.
 
-use super::simd::{prefetch_children, prefetch_node};
+use super::simd::{NodeKernel, prefetch_children, prefetch_node, with_node_kernel};
 use super::traverse::{FAR_SCALE, NodeRay, Stack, entry_limit, insert_farthest_first};
 use super::{Bvh, TraversalStats, WIDTH, WideNode};
 use crate::math::Ray;
@@ -18,16 +18,16 @@ pub const PACKET: usize = 16;
 /// Per axis, the smallest and largest origin and reciprocal direction over a packet's
 /// rays; every ray's reciprocal has one sign per axis (no ray runs parallel to an axis).
 #[derive(Clone, Copy, Debug)]
-struct PacketBound {
-    origin_lo: [f32; 3],
+pub struct PacketBound {
+    pub(super) origin_lo: [f32; 3],
     origin_hi: [f32; 3],
-    inv_lo: [f32; 3],
-    inv_hi: [f32; 3],
+    pub(super) inv_lo: [f32; 3],
+    pub(super) inv_hi: [f32; 3],
     /// All rays start at the same point (a pinhole camera's): each plane's distance
     /// from it is one value, and only the reciprocals' interval remains.
-    common_origin: bool,
+    pub(super) common_origin: bool,
     /// Per axis, whether the rays meet a box's upper plane first (all alike).
-    near_is_max: [bool; 3],
+    pub(super) near_is_max: [bool; 3],
 }
 
 /// The packet's rays in structure-of-arrays form, four lanes at a time.
@@ -40,7 +40,7 @@ struct PacketLanes {
 impl PacketBound {
     /// The bound of `rays`, or `None` when some ray has an open slab (an axis-parallel
     /// or non-finite ray) or the rays' directions differ in sign on some axis.
-    fn new(rays: &[NodeRay]) -> Option<Self> {
+    pub(super) fn new(rays: &[NodeRay]) -> Option<Self> {
         let first = rays.first()?;
         let mut bound = Self {
             origin_lo: first.origin,
@@ -74,7 +74,7 @@ impl PacketBound {
     /// ray's own slab test passes, since rounding is monotonic in each operand, so the
     /// products at the interval corners bound every ray's rounded product.
     #[inline(always)]
-    fn hit_children(&self, node: &WideNode, limit: f32) -> ([f32; WIDTH], u32) {
+    pub(super) fn hit_children(&self, node: &WideNode, limit: f32) -> ([f32; WIDTH], u32) {
         if self.common_origin {
             return self.hit_children_from_one_origin(node, limit);
         }
@@ -239,6 +239,20 @@ impl Bvh {
         &self,
         rays: &[Ray],
         stats: &mut TraversalStats,
+        visit: impl FnMut(usize, usize, u32, f32, &mut [f32; PACKET]),
+        prefetch: impl Fn(usize),
+    ) -> Option<[f32; PACKET]> {
+        with_node_kernel!(kernel => kernel.traverse_packet(self, rays, stats, visit, prefetch))
+    }
+
+    /// [`traverse_closest_packet`](Self::traverse_closest_packet) with the packet box
+    /// tests of `kernel`.
+    #[inline(always)]
+    pub(super) fn traverse_closest_packet_with(
+        &self,
+        kernel: impl NodeKernel,
+        rays: &[Ray],
+        stats: &mut TraversalStats,
         mut visit: impl FnMut(usize, usize, u32, f32, &mut [f32; PACKET]),
         prefetch: impl Fn(usize),
     ) -> Option<[f32; PACKET]> {
@@ -307,7 +321,7 @@ impl Bvh {
             }
             nodes += 1;
             prefetch_children(node);
-            let (t, mut mask) = bound.hit_children(node, limit);
+            let (t, mut mask) = kernel.packet_hit_children(&bound, node, limit);
             // Nearest first: sorted by entry distance, farthest at the front.
             let mut hits = [entry; WIDTH];
             let mut n = 0;

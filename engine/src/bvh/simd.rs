@@ -8,7 +8,7 @@
 //! signature fixes.
 
 use super::traverse::{FAR_SCALE, LeafVisit, NodeRay};
-use super::{Bvh, TraversalStats, WIDTH, WideNode};
+use super::{Bvh, PACKET, PacketBound, TraversalStats, WIDTH, WideNode};
 use crate::math::{Aabb, Ray};
 use crate::support::SupportTable;
 use crate::triangle::{BlockHits, TriangleBlock, WatertightRay};
@@ -66,6 +66,28 @@ pub trait NodeKernel: Copy {
     /// `i`): `limit` is a closest hit widened for the slab test's rounding (`entry_limit`).
     fn hit_children(self, ray: &NodeRay, node: &WideNode, limit: f32) -> ([f32; WIDTH], u32);
 
+    /// `Bvh::traverse_closest_packet` on this kernel: with AVX2, one function compiled
+    /// for it, so the packet's box tests inline into the walk.
+    fn traverse_packet(
+        self,
+        bvh: &Bvh,
+        rays: &[Ray],
+        stats: &mut TraversalStats,
+        visit: impl FnMut(usize, usize, u32, f32, &mut [f32; PACKET]),
+        prefetch: impl Fn(usize),
+    ) -> Option<[f32; PACKET]>;
+
+    /// The packet's box test of `node` ([`PacketBound`]'s, bit for bit).
+    #[inline(always)]
+    fn packet_hit_children(
+        self,
+        bound: &PacketBound,
+        node: &WideNode,
+        limit: f32,
+    ) -> ([f32; WIDTH], u32) {
+        bound.hit_children(node, limit)
+    }
+
     /// Bit `i` set when lane `i` of `node` is a leaf (a count above zero).
     #[inline(always)]
     fn leaf_lanes(self, node: &WideNode) -> u32 {
@@ -102,6 +124,18 @@ impl NodeKernel for Portable {
         leaves: &mut impl LeafVisit,
     ) {
         bvh.traverse_with(self, ray, stats, leaves)
+    }
+
+    #[inline(always)]
+    fn traverse_packet(
+        self,
+        bvh: &Bvh,
+        rays: &[Ray],
+        stats: &mut TraversalStats,
+        visit: impl FnMut(usize, usize, u32, f32, &mut [f32; PACKET]),
+        prefetch: impl Fn(usize),
+    ) -> Option<[f32; PACKET]> {
+        bvh.traverse_closest_packet_with(self, rays, stats, visit, prefetch)
     }
 
     #[inline(always)]
@@ -206,7 +240,8 @@ pub fn prefetch_children(_node: &WideNode) {}
 )]
 mod avx2 {
     use super::{
-        Aabb, Affine3A, FAR_SCALE, LeafVisit, NodeKernel, NodeRay, SupportTable, WIDTH, WideNode,
+        Aabb, Affine3A, FAR_SCALE, LeafVisit, NodeKernel, NodeRay, PACKET, PacketBound,
+        SupportTable, WIDTH, WideNode,
     };
     use crate::bvh::{Bvh, TraversalStats};
     use crate::math::Ray;
@@ -351,7 +386,48 @@ mod avx2 {
         bvh.traverse_with(Avx2 { _detected: () }, ray, stats, leaves)
     }
 
+    /// The packet walk, kept out of line as [`traverse`] is.
+    #[target_feature(enable = "avx2")]
+    #[inline(never)]
+    fn traverse_packet(
+        bvh: &Bvh,
+        rays: &[Ray],
+        stats: &mut TraversalStats,
+        visit: impl FnMut(usize, usize, u32, f32, &mut [f32; PACKET]),
+        prefetch: impl Fn(usize),
+    ) -> Option<[f32; PACKET]> {
+        bvh.traverse_closest_packet_with(Avx2 { _detected: () }, rays, stats, visit, prefetch)
+    }
+
     impl NodeKernel for Avx2 {
+        #[inline(always)]
+        fn traverse_packet(
+            self,
+            bvh: &Bvh,
+            rays: &[Ray],
+            stats: &mut TraversalStats,
+            visit: impl FnMut(usize, usize, u32, f32, &mut [f32; PACKET]),
+            prefetch: impl Fn(usize),
+        ) -> Option<[f32; PACKET]> {
+            // SAFETY: `self` exists only when `detect` found AVX2 on this CPU.
+            unsafe { traverse_packet(bvh, rays, stats, visit, prefetch) }
+        }
+
+        #[inline(always)]
+        fn packet_hit_children(
+            self,
+            bound: &PacketBound,
+            node: &WideNode,
+            limit: f32,
+        ) -> ([f32; WIDTH], u32) {
+            if bound.common_origin {
+                // SAFETY: `self` exists only when `detect` found AVX2 on this CPU.
+                unsafe { packet_hit_children_from_one_origin(bound, node, limit) }
+            } else {
+                bound.hit_children(node, limit)
+            }
+        }
+
         #[inline(always)]
         fn traverse(
             self,
@@ -569,6 +645,48 @@ mod avx2 {
         unsafe { (&*planes.add(near), &*planes.add(far)) }
     }
 
+    /// `PacketBound::hit_children_from_one_origin` bit for bit (the same operations in
+    /// the same order and operand order), eight lanes at once.
+    #[target_feature(enable = "avx2")]
+    #[inline]
+    fn packet_hit_children_from_one_origin(
+        bound: &PacketBound,
+        node: &WideNode,
+        limit: f32,
+    ) -> ([f32; WIDTH], u32) {
+        // SAFETY: the arrays hold WIDTH = 8 floats, one 256-bit register's worth.
+        let load = |a: &[f32; WIDTH]| unsafe { _mm256_loadu_ps(a.as_ptr()) };
+        let mut near = _mm256_setzero_ps();
+        let mut far = _mm256_set1_ps(f32::INFINITY);
+        for axis in 0..3 {
+            let (near_plane, far_plane) = near_far_planes(node, axis, bound.near_is_max[axis]);
+            let origin = _mm256_set1_ps(bound.origin_lo[axis]);
+            let (i_lo, i_hi) = (
+                _mm256_set1_ps(bound.inv_lo[axis]),
+                _mm256_set1_ps(bound.inv_hi[axis]),
+            );
+            let to_near = _mm256_sub_ps(load(near_plane), origin);
+            let to_far = _mm256_sub_ps(load(far_plane), origin);
+            near = _mm256_max_ps(
+                near,
+                _mm256_min_ps(_mm256_mul_ps(to_near, i_lo), _mm256_mul_ps(to_near, i_hi)),
+            );
+            far = _mm256_min_ps(
+                far,
+                _mm256_max_ps(_mm256_mul_ps(to_far, i_lo), _mm256_mul_ps(to_far, i_hi)),
+            );
+        }
+        let far = _mm256_mul_ps(far, _mm256_set1_ps(FAR_SCALE));
+        let hit = _mm256_and_ps(
+            _mm256_cmp_ps::<_CMP_LE_OS>(near, far),
+            _mm256_cmp_ps::<_CMP_LT_OS>(near, _mm256_set1_ps(limit)),
+        );
+        let mut t = [0.0; WIDTH];
+        // SAFETY: `t` holds WIDTH = 8 floats.
+        unsafe { _mm256_storeu_ps(t.as_mut_ptr(), near) };
+        (t, _mm256_movemask_ps(hit) as u32)
+    }
+
     /// The portable kernel's results bit for bit, eight lanes at once.
     #[target_feature(enable = "avx2")]
     #[inline]
@@ -744,6 +862,44 @@ mod tests {
             hits += m_a.count_ones();
         }
         assert!(hits > 1000, "too few boxes hit ({hits}) to compare");
+    }
+
+    #[cfg(target_arch = "x86_64")]
+    #[test]
+    fn avx2_and_portable_packet_bounds_give_the_same_bits() {
+        let avx2 = avx2_here();
+        let (mut bounds, mut hits) = (0, 0);
+        for (i, (ray, node, t_max)) in cases().into_iter().enumerate() {
+            // A packet from the case's origin, its directions spread around the case's.
+            let mut state = i as u64 + 1;
+            let spread = [0.001, 0.05, 0.5][i % 3];
+            let rays: Vec<NodeRay> = (0..1 + i % PACKET)
+                .map(|_| {
+                    let d = glam::Vec3A::from(ray.inv_dir).recip()
+                        + glam::Vec3A::new(
+                            uniform(&mut state) - 0.5,
+                            uniform(&mut state) - 0.5,
+                            uniform(&mut state) - 0.5,
+                        ) * spread;
+                    NodeRay::new(&crate::math::Ray::new(ray.origin.into(), d))
+                })
+                .collect();
+            let Some(bound) = PacketBound::new(&rays) else {
+                continue;
+            };
+            bounds += 1;
+            // A packet's limit is its farthest ray's: mostly open.
+            let limit = if i % 4 == 0 { t_max } else { f32::INFINITY };
+            let (t_a, m_a) = avx2.packet_hit_children(&bound, &node, limit);
+            let (t_p, m_p) = Portable.packet_hit_children(&bound, &node, limit);
+            assert_eq!(m_a, m_p, "masks differ for {bound:?} {node:?}");
+            for lane in 0..WIDTH {
+                assert_eq!(t_a[lane].to_bits(), t_p[lane].to_bits(), "lane {lane}");
+            }
+            hits += m_a.count_ones();
+        }
+        assert!(bounds > 1000, "only {bounds} packets could be bounded");
+        assert!(hits > 500, "too few boxes hit ({hits}) to compare");
     }
 
     #[cfg(target_arch = "x86_64")]
