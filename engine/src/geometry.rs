@@ -2,7 +2,7 @@
 //! instance, collected in the [`GeometryLibrary`].
 
 use crate::bvh::simd::{NodeKernel, prefetch, with_node_kernel};
-use crate::bvh::{BuildParams, Bvh, LeafVisit, PACKET, PADDING, TraversalStats};
+use crate::bvh::{BuildParams, Bvh, LeafVisit, PACKET, PADDING, TraversalStats, mask_bits};
 use crate::math::{Aabb, Ray};
 use crate::mesh::{MeshError, TriangleMesh};
 use crate::support::SupportTable;
@@ -174,10 +174,8 @@ impl Geometry {
             &self.bvh,
             rays,
             stats,
-            |first, count, mut rays_in, _, t_max| {
-                while rays_in != 0 {
-                    let ray = rays_in.trailing_zeros() as usize;
-                    rays_in &= rays_in - 1;
+            |first, count, rays_in, _, t_max| {
+                for ray in mask_bits(rays_in) {
                     let wray =
                         &*watertight[ray].get_or_insert_with(|| WatertightRay::new(&rays[ray]));
                     self.for_hits(

@@ -14,6 +14,7 @@ mod validate;
 mod wide;
 
 pub use build::{BOTTOM_GRID_FROM, BuildParams, BuildScratch, GRID_FROM};
+pub(crate) use packet::mask_bits;
 pub use packet::{PACKET, PacketBound};
 pub use refit::RefitError;
 pub use traverse::{LeafVisit, NodeRay, TraversalStats};

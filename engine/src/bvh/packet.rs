@@ -15,6 +15,18 @@ use glam::Vec4;
 /// Rays a packet holds at most.
 pub const PACKET: usize = 16;
 
+/// The indices of the bits set in `mask`, lowest first.
+#[inline(always)]
+pub(crate) fn mask_bits(mut mask: u32) -> impl Iterator<Item = usize> {
+    std::iter::from_fn(move || {
+        (mask != 0).then(|| {
+            let bit = mask.trailing_zeros() as usize;
+            mask &= mask - 1;
+            bit
+        })
+    })
+}
+
 /// Per axis, the smallest and largest origin and reciprocal direction over a packet's
 /// rays; every ray's reciprocal has one sign per axis (no ray runs parallel to an axis).
 #[derive(Clone, Copy, Debug)]
