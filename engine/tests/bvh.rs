@@ -760,6 +760,52 @@ fn block_aligned_leaves_start_at_multiples_and_pad_only_their_ends() {
     );
 }
 
+/// Nodes whose lanes are all leaves, by their number of leaf lanes.
+fn leaf_nodes_by_lanes(bvh: &Bvh) -> Vec<usize> {
+    let mut nodes = vec![0; WIDTH + 1];
+    for node in &bvh.wide {
+        let leaves = (0..WIDTH).filter(|&l| node.counts[l] > 0).count();
+        let used = (0..WIDTH).filter(|&l| node.is_used(l)).count();
+        if leaves == used {
+            nodes[leaves] += 1;
+        }
+    }
+    nodes
+}
+
+#[test]
+fn small_bottom_level_subtrees_fill_their_nodes() {
+    // 64 boxes in a row: 16 leaves of four, a binary tree four levels deep. Opening
+    // the widest lanes first gives a root of eight lanes over eight nodes of two
+    // leaves; the bottom level's preset makes a root of two lanes over two nodes of
+    // eight leaves, as deep and a third of the nodes.
+    let row: Vec<Aabb> = (0..64)
+        .map(|i| {
+            let x = i as f32;
+            Aabb::new(Vec3A::new(x, 0.0, 0.0), Vec3A::new(x + 0.5, 0.5, 0.5))
+        })
+        .collect();
+    let greedy = BuildParams {
+        fill_levels: 0,
+        ..BuildParams::BOTTOM_LEVEL
+    };
+    let (filled, greedy) = (
+        Bvh::build(&row, BuildParams::BOTTOM_LEVEL),
+        Bvh::build(&row, greedy),
+    );
+    filled.validate(&row).unwrap();
+    greedy.validate(&row).unwrap();
+    assert_eq!(greedy.wide.len(), 9);
+    assert_eq!(leaf_nodes_by_lanes(&greedy)[2], 8);
+    assert_eq!(filled.wide.len(), 3);
+    assert_eq!(leaf_nodes_by_lanes(&filled)[8], 2);
+    // Larger trees: every leaf still reached by the rays that reach it without the rule.
+    let mut rng = TestRng::new(17);
+    let mesh = random_mesh(&mut rng, 5_000, 10.0, 0.3);
+    let rays: Vec<Ray> = (0..300).map(|_| random_ray(&mut rng, 12.0)).collect();
+    check_mesh_against_brute_force(mesh, &rays, BuildParams::BOTTOM_LEVEL);
+}
+
 #[test]
 fn clustered_top_level_trees_give_every_primitive_a_lane_and_stay_as_good() {
     let mut rng = TestRng::new(17);
