@@ -799,6 +799,12 @@ fn small_bottom_level_subtrees_fill_their_nodes() {
     assert_eq!(leaf_nodes_by_lanes(&greedy)[2], 8);
     assert_eq!(filled.wide.len(), 3);
     assert_eq!(leaf_nodes_by_lanes(&filled)[8], 2);
+    // 40 boxes, 10 leaves: one half's five leaves fit beside the other half's lane, so
+    // the root takes them and only the other half is a node of its own.
+    let ten = Bvh::build(&row[..40], BuildParams::BOTTOM_LEVEL);
+    ten.validate(&row[..40]).unwrap();
+    assert_eq!(ten.wide.len(), 2);
+    assert_eq!(leaf_nodes_by_lanes(&ten)[5], 1);
     // Larger trees: every leaf still reached by the rays that reach it without the rule.
     let mut rng = TestRng::new(17);
     let mesh = random_mesh(&mut rng, 5_000, 10.0, 0.3);

@@ -48,8 +48,8 @@ pub struct BuildParams {
     pub grid_from: usize,
     /// Subtrees that need at most this many wide levels (leaves of `max_leaf_size`
     /// under nodes of [`WIDTH`](super::WIDTH) lanes) open only the lanes that must open
-    /// to keep that depth, instead of every lane the node has room for, so their lower
-    /// nodes come out full. Opening the widest lanes first fills a node's lanes from
+    /// to keep that depth, and lanes whose leaves all fit in the lanes left, instead of
+    /// every lane the node has room for, so their lower nodes come out full. Opening the widest lanes first fills a node's lanes from
     /// the top, and a complete tree whose binary depth is one more than a multiple of
     /// three then ends in nodes of two leaves (0: that greedy opening everywhere).
     pub fill_levels: u32,
@@ -774,21 +774,37 @@ impl Builder {
         for position in 0..len {
             openings[position] = self.opening(&scratch.lanes[lanes[position] as usize]);
         }
-        // A subtree of at most `fill_levels` wide levels opens only the lanes that must
-        // open to keep it that shallow, so the nodes below fill up (see `fill_levels`).
+        // A subtree of at most `fill_levels` wide levels opens the lanes that must open
+        // to keep it that shallow (widest first), then lanes whose leaves all fit in the
+        // lanes left (fewest leaves first, so one is flattened before the next starts),
+        // so the nodes below fill up (see `fill_levels`). Elsewhere the widest lane opens.
         let levels = self.levels_needed(node);
         let fill = levels <= self.params.fill_levels;
         let below = levels.saturating_sub(1);
         while len < WIDTH {
-            let mut widest: Option<(usize, f32)> = None;
+            // The lane to open: the greatest (must open, score).
+            let mut widest: Option<(usize, (bool, f32))> = None;
             for (position, opening) in openings[..len].iter().enumerate() {
-                if let Some((area, added)) = *opening
-                    && len + added <= WIDTH
-                    && (!fill
-                        || self.levels_needed(&scratch.lanes[lanes[position] as usize]) > below)
-                    && widest.is_none_or(|(_, best)| area > best)
-                {
-                    widest = Some((position, area));
+                let Some((area, added)) = *opening else {
+                    continue;
+                };
+                if len + added > WIDTH {
+                    continue;
+                }
+                let key = if fill {
+                    let lane = &scratch.lanes[lanes[position] as usize];
+                    if self.levels_needed(lane) > below {
+                        (true, area)
+                    } else if self.leaves_needed(lane) + len <= WIDTH + 1 {
+                        (false, -(self.leaves_needed(lane) as f32))
+                    } else {
+                        continue;
+                    }
+                } else {
+                    (true, area)
+                };
+                if widest.is_none_or(|(_, best)| key > best) {
+                    widest = Some((position, key));
                 }
             }
             let Some((position, _)) = widest else {
@@ -906,8 +922,13 @@ impl Builder {
 
     /// Wide levels a subtree of `node`'s primitives needs at least: leaves of up to
     /// `max_leaf_size` primitives under nodes of [`WIDTH`] lanes.
+    /// Leaves a subtree of `node`'s primitives needs at least.
+    fn leaves_needed(&self, node: &Node) -> usize {
+        (node.count as usize).div_ceil(self.params.max_leaf_size.max(1))
+    }
+
     fn levels_needed(&self, node: &Node) -> u32 {
-        let mut leaves = (node.count as usize).div_ceil(self.params.max_leaf_size.max(1));
+        let mut leaves = self.leaves_needed(node);
         let mut levels = 0;
         while leaves > 1 {
             leaves = leaves.div_ceil(WIDTH);
