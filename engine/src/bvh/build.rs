@@ -793,10 +793,11 @@ impl Builder {
                 }
                 let key = if fill {
                     let lane = &scratch.lanes[lanes[position] as usize];
+                    let leaves = self.leaves_needed(lane);
                     if self.levels_needed(lane) > below {
                         (true, area)
-                    } else if self.leaves_needed(lane) + len <= WIDTH + 1 {
-                        (false, -(self.leaves_needed(lane) as f32))
+                    } else if leaves + len <= WIDTH + 1 {
+                        (false, -(leaves as f32))
                     } else {
                         continue;
                     }
