@@ -53,13 +53,16 @@ pub trait NodeKernel: Copy {
     /// `Bvh::traverse_with` on this kernel: with AVX2, one function compiled for it,
     /// so the box tests inline into the loop (and the caller's leaf test, when it is a
     /// [`LeafVisit`] with an `#[inline(always)]` method).
+    #[inline(always)]
     fn traverse(
         self,
         bvh: &Bvh,
         ray: &Ray,
         stats: &mut TraversalStats,
         leaves: &mut impl LeafVisit,
-    );
+    ) {
+        bvh.traverse_with(self, ray, stats, leaves)
+    }
 
     /// Entry distances of the children and a bitmask of the lanes whose box the ray
     /// enters (conservatively) with an entry distance below `limit` (bit `i` for lane
@@ -68,6 +71,7 @@ pub trait NodeKernel: Copy {
 
     /// `Bvh::traverse_closest_packet` on this kernel: with AVX2, one function compiled
     /// for it, so the packet's box tests inline into the walk.
+    #[inline(always)]
     fn traverse_packet(
         self,
         bvh: &Bvh,
@@ -75,7 +79,9 @@ pub trait NodeKernel: Copy {
         stats: &mut TraversalStats,
         visit: impl FnMut(usize, usize, u32, f32, &mut [f32; PACKET]),
         prefetch: impl Fn(usize),
-    ) -> Option<[f32; PACKET]>;
+    ) -> Option<[f32; PACKET]> {
+        bvh.traverse_closest_packet_with(self, rays, stats, visit, prefetch)
+    }
 
     /// The packet's box test of `node` ([`PacketBound`]'s, bit for bit).
     #[inline(always)]
@@ -115,29 +121,6 @@ pub trait NodeKernel: Copy {
 pub struct Portable;
 
 impl NodeKernel for Portable {
-    #[inline(always)]
-    fn traverse(
-        self,
-        bvh: &Bvh,
-        ray: &Ray,
-        stats: &mut TraversalStats,
-        leaves: &mut impl LeafVisit,
-    ) {
-        bvh.traverse_with(self, ray, stats, leaves)
-    }
-
-    #[inline(always)]
-    fn traverse_packet(
-        self,
-        bvh: &Bvh,
-        rays: &[Ray],
-        stats: &mut TraversalStats,
-        visit: impl FnMut(usize, usize, u32, f32, &mut [f32; PACKET]),
-        prefetch: impl Fn(usize),
-    ) -> Option<[f32; PACKET]> {
-        bvh.traverse_closest_packet_with(self, rays, stats, visit, prefetch)
-    }
-
     #[inline(always)]
     fn hit_children(self, ray: &NodeRay, node: &WideNode, limit: f32) -> ([f32; WIDTH], u32) {
         let mut t = [0.0; WIDTH];
