@@ -727,7 +727,8 @@ impl TopLevel {
 
     /// [`intersect_any`](Self::intersect_any) with the box tests of `kernel`, at both
     /// levels; the triangle `leaving` (the one the ray starts on) is not tested, and its
-    /// instance is tested before the top level is walked.
+    /// instance is tested before the rest of the top level is walked, or after it when
+    /// its mesh [is flat](Geometry::is_flat).
     #[inline(always)]
     pub fn intersect_any_with(
         &self,
@@ -779,21 +780,36 @@ impl TopLevel {
         };
         // A ray leaving a plant is most often stopped by that plant: its own instance
         // first, then the rest of the top level without it (whose walk still counts the
-        // slot among its primitive tests when it reaches it).
-        let own = leaving.map(|leaving| leaving.slot as usize);
-        let occluded = match leaving {
-            Some(leaving) if (leaving.slot as usize) < self.instances.len() => {
+        // slot among its primitive tests when it reaches it). A ray leaving a flat mesh
+        // (a terrain) is seldom stopped by it, and its walk there misses the caches: that
+        // instance comes last, when nothing else stopped the ray.
+        let own = leaving.filter(|leaving| (leaving.slot as usize) < self.instances.len());
+        let own_last = own.is_some_and(|leaving| {
+            let record = &self.instances[leaving.slot as usize];
+            library.geometries[record.geometry.0 as usize].is_flat()
+        });
+        #[inline(always)]
+        fn test_own(
+            own: Option<InstanceTriangle>,
+            t_max: f32,
+            stats: &mut TraversalStats,
+            test: &mut impl FnMut(usize, f32, Option<u32>) -> bool,
+        ) -> bool {
+            own.is_some_and(|leaving| {
                 stats.primitive_tests += 1;
-                test(leaving.slot as usize, ray.t_max, Some(leaving.triangle))
-            }
-            _ => false,
-        } || self.bvh.traverse_any_with(
-            kernel,
-            ray,
-            stats,
-            |slot, t_max| Some(slot) != own && test(slot, t_max, None),
-            |slot| prefetch(&self.instances[slot]),
-        );
+                test(leaving.slot as usize, t_max, Some(leaving.triangle))
+            })
+        }
+        let own_slot = own.map(|leaving| leaving.slot as usize);
+        let occluded = (!own_last && test_own(own, ray.t_max, stats, &mut test))
+            || self.bvh.traverse_any_with(
+                kernel,
+                ray,
+                stats,
+                |slot, t_max| Some(slot) != own_slot && test(slot, t_max, None),
+                |slot| prefetch(&self.instances[slot]),
+            )
+            || (own_last && test_own(own, ray.t_max, stats, &mut test));
         stats.add(&inner);
         debug_assert_eq!(occluded, occluder.is_some());
         occluder

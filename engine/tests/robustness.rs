@@ -287,3 +287,139 @@ fn shadow_rays_leaving_far_instances_do_not_shadow_their_own_triangle() {
         "the skip changed the answer for other occluders"
     );
 }
+
+/// A `cells` × `cells` height field `size` metres wide with hills `relief` metres high
+/// and about `size / 4` apart, two triangles a cell, +Y up.
+fn hilly_ground(cells: u32, size: f32, relief: f32) -> TriangleMesh {
+    let mut mesh = TriangleMesh::default();
+    let n = cells + 1;
+    for i in 0..n {
+        for j in 0..n {
+            let (x, z) = (
+                size * (j as f32 / cells as f32 - 0.5),
+                size * (i as f32 / cells as f32 - 0.5),
+            );
+            let k = std::f32::consts::TAU * 4.0 / size;
+            let y = 0.5 * relief * ((k * x).sin() * (k * z + 1.0).cos());
+            mesh.positions.push(glam::Vec3::new(x, y, z));
+        }
+    }
+    for i in 0..cells {
+        for j in 0..cells {
+            let v = i * n + j;
+            mesh.indices.push([v, v + n, v + n + 1]);
+            mesh.indices.push([v, v + n + 1, v + 1]);
+            mesh.shaders.extend([0, 0]);
+        }
+    }
+    mesh
+}
+
+/// Shadow rays leaving a flat instance (a terrain) walk it after the rest of the top
+/// level instead of first: over hills that shadow their own slopes and plants standing
+/// on them, every ray's answer equals a brute force over all other triangles.
+#[test]
+fn shadow_rays_leaving_a_flat_instance_see_every_occluder() {
+    let mut rng = TestRng::new(43);
+    let mut lib = GeometryLibrary::default();
+    let ground = lib.add(
+        Geometry::new(
+            "ground",
+            hilly_ground(48, 20.0, 1.6),
+            BuildParams::BOTTOM_LEVEL,
+        )
+        .unwrap(),
+    );
+    let plant = lib.add(
+        Geometry::new(
+            "plant",
+            random_mesh(&mut rng, 200, 0.4, 0.15),
+            BuildParams::BOTTOM_LEVEL,
+        )
+        .unwrap(),
+    );
+    assert!(
+        lib.geometries[ground.0 as usize].is_flat(),
+        "a terrain is flat"
+    );
+    assert!(
+        !lib.geometries[plant.0 as usize].is_flat(),
+        "a plant is not"
+    );
+    // The ground turned and moved, so its object space is not the world's.
+    let ground_transform = Affine3A::from_rotation_translation(
+        glam::Quat::from_rotation_y(0.7),
+        (3.0, -1.0, 2.0).into(),
+    );
+    let mut descs = vec![InstanceDesc {
+        transform: ground_transform,
+        geometry: ground,
+    }];
+    descs.extend((0..60).map(|_| {
+        let (x, z) = (rng.range(-9.0, 9.0), rng.range(-9.0, 9.0));
+        InstanceDesc {
+            transform: ground_transform * Affine3A::from_translation((x, 0.8, z).into()),
+            geometry: plant,
+        }
+    }));
+    let tlas = TopLevel::build(&lib, &descs, BuildParams::TOP_LEVEL);
+    let ground_slot = (0..tlas.len())
+        .find(|&slot| tlas.record(slot).geometry == ground)
+        .unwrap() as u32;
+    let record = tlas.record(ground_slot as usize);
+    let mesh = &lib.geometries[ground.0 as usize].mesh;
+    let mut stats = TraversalStats::default();
+    let (mut by_ground_only, mut by_plants, mut free) = (0, 0, 0);
+    for _ in 0..40_000 {
+        let triangle = (rng.next_u64() % mesh.triangle_count() as u64) as u32;
+        let [p0, p1, p2] = mesh.triangle(triangle as usize);
+        let (u, v) = (rng.f32(), rng.f32());
+        let (u, v) = if u + v > 1.0 {
+            (1.0 - u, 1.0 - v)
+        } else {
+            (u, v)
+        };
+        let barycentrics = Vec3A::new(1.0 - u - v, u, v);
+        let point = hit_point(p0, p1, p2, barycentrics).transformed(&record.object_to_world());
+        let n = (record.object_to_world().matrix3 * (p1 - p0).cross(p2 - p0)).normalize();
+        // Low rays meet the hills, high ones the plants or nothing.
+        let mut d = Vec3A::from(rng.unit());
+        d.y = d.y.abs() * rng.range(0.05, 1.0);
+        let d = d.normalize();
+        if d.dot(n) <= 0.0 {
+            continue;
+        }
+        let shadow = Ray::new(point.offset_origin(n, d), d);
+        let leaving = InstanceTriangle {
+            slot: ground_slot,
+            triangle,
+        };
+        let hits = |slot: usize| {
+            let record = tlas.record(slot);
+            let local = shadow.transformed(&record.world_to_object());
+            let mesh = &lib.geometries[record.geometry.0 as usize].mesh;
+            brute_closest(mesh, &local, |t| {
+                slot as u32 != ground_slot || t != triangle
+            })
+            .is_some()
+        };
+        let ground_hit = hits(ground_slot as usize);
+        let plant_hit = (0..tlas.len()).any(|slot| slot as u32 != ground_slot && hits(slot));
+        let walked = tlas.intersect_any_leaving(&lib, &shadow, Some(leaving), &mut stats, |_| true);
+        assert_eq!(
+            walked,
+            ground_hit || plant_hit,
+            "ray {shadow:?} leaving ground triangle {triangle}: ground {ground_hit}, plants {plant_hit}"
+        );
+        match (ground_hit, plant_hit) {
+            (true, false) => by_ground_only += 1,
+            (_, true) => by_plants += 1,
+            (false, false) => free += 1,
+        }
+    }
+    eprintln!(
+        "{by_ground_only} rays stopped by the ground alone, {by_plants} by plants, {free} free"
+    );
+    // Each case must be reached for the walk order to be tested at all.
+    assert!(by_ground_only > 500 && by_plants > 500 && free > 500);
+}
