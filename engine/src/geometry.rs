@@ -5,10 +5,10 @@ use crate::bvh::simd::{NodeKernel, prefetch, with_node_kernel};
 use crate::bvh::{BuildParams, Bvh, LeafVisit, PACKET, PADDING, TraversalStats, mask_bits};
 use crate::math::{Aabb, Ray};
 use crate::mesh::{MeshError, TriangleMesh};
+use crate::presplit::triangle_boxes;
 use crate::support::SupportTable;
 use crate::triangle::{TriangleBlock, TriangleHit, WatertightRay};
 use glam::{Affine3A, Vec3A};
-use rayon::prelude::*;
 
 /// Triangles per [`TriangleBlock`]: the bottom level's leaves are aligned to it.
 const TRIANGLE_BLOCK: usize = 4;
@@ -25,7 +25,9 @@ pub struct Geometry {
     pub name: String,
     /// The source mesh (attributes for shading).
     pub mesh: TriangleMesh,
-    /// The BLAS over the mesh's triangles.
+    /// The BLAS over the mesh's triangles: its slots index the build boxes of
+    /// [`triangle_boxes`] (a long slanted triangle has two), the blocks hold the
+    /// triangles themselves.
     pub bvh: Bvh,
     /// The triangles of slots `4b .. 4b + 4` in block `b`: leaves start at multiples of
     /// four ([`BuildParams::leaf_block`]), so a leaf's triangles fill whole blocks.
@@ -69,12 +71,9 @@ impl Geometry {
         params: BuildParams,
     ) -> Result<Self, MeshError> {
         mesh.check()?;
-        let bounds: Vec<Aabb> = (0..mesh.triangle_count())
-            .into_par_iter()
-            .map(|i| mesh.triangle_bounds(i))
-            .collect();
+        let boxes = triangle_boxes(&mesh, params.split_ratio);
         let bvh = Bvh::build(
-            &bounds,
+            &boxes.boxes,
             BuildParams {
                 leaf_block: TRIANGLE_BLOCK,
                 ..params
@@ -86,7 +85,8 @@ impl Geometry {
             .map(|slots| {
                 let mut triangles = [(0, [Vec3A::ZERO; 3]); TRIANGLE_BLOCK];
                 let mut lanes = 0;
-                for &t in slots.iter().filter(|&&t| t != PADDING) {
+                for &primitive in slots.iter().filter(|&&p| p != PADDING) {
+                    let t = boxes.owner(primitive);
                     triangles[lanes] = (t, mesh.triangle(t as usize));
                     lanes += 1;
                 }

@@ -23,6 +23,7 @@ pub mod metrics;
 pub mod node_animation;
 pub mod occluders;
 pub mod opacity;
+pub mod presplit;
 pub mod render;
 pub mod sampling;
 pub mod shading;
