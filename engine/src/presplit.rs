@@ -49,11 +49,11 @@ pub fn triangle_boxes(mesh: &TriangleMesh, split_ratio: f32) -> TriangleBoxes {
     let halves: Vec<(Aabb, Option<Aabb>)> = (0..mesh.triangle_count())
         .into_par_iter()
         .map(|i| {
-            let corners = mesh.triangle(i);
-            if corners.iter().all(|c| c.is_finite()) {
-                triangle_halves(corners, split_ratio)
+            let whole = mesh.triangle_bounds(i);
+            if whole.is_empty() {
+                (whole, None)
             } else {
-                (Aabb::EMPTY, None)
+                triangle_halves(mesh.triangle(i), whole, split_ratio)
             }
         })
         .collect();
@@ -74,10 +74,9 @@ pub fn triangle_boxes(mesh: &TriangleMesh, split_ratio: f32) -> TriangleBoxes {
     TriangleBoxes { boxes, owners }
 }
 
-/// The box of the triangle with finite `corners`, or the boxes of its two halves when
-/// its box is more than `split_ratio` × twice its area.
-fn triangle_halves(corners: [Vec3A; 3], split_ratio: f32) -> (Aabb, Option<Aabb>) {
-    let whole = Aabb::from_points(corners);
+/// The box `whole` of the triangle with finite `corners`, or the boxes of its two halves
+/// when `whole` is more than `split_ratio` × twice its area.
+fn triangle_halves(corners: [Vec3A; 3], whole: Aabb, split_ratio: f32) -> (Aabb, Option<Aabb>) {
     let area = 0.5
         * (corners[1] - corners[0])
             .cross(corners[2] - corners[0])
@@ -89,14 +88,7 @@ fn triangle_halves(corners: [Vec3A; 3], split_ratio: f32) -> (Aabb, Option<Aabb>
     {
         return (whole, None);
     }
-    let extent = whole.extent();
-    let axis = if extent.x >= extent.y && extent.x >= extent.z {
-        0
-    } else if extent.y >= extent.z {
-        1
-    } else {
-        2
-    };
+    let axis = whole.largest_axis();
     let cut = 0.5 * (whole.min[axis] + whole.max[axis]);
     let (mut below, mut above) = (Aabb::EMPTY, Aabb::EMPTY);
     for i in 0..3 {
