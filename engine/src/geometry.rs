@@ -3,12 +3,14 @@
 
 use crate::bvh::simd::{NodeKernel, prefetch, with_node_kernel};
 use crate::bvh::{BuildParams, Bvh, LeafVisit, PACKET, PADDING, TraversalStats, mask_bits};
+use crate::heightfield::Heightfield;
 use crate::math::{Aabb, Ray};
 use crate::mesh::{MeshError, TriangleMesh};
 use crate::presplit::triangle_boxes;
 use crate::support::SupportTable;
 use crate::triangle::{TriangleBlock, TriangleHit, WatertightRay};
 use glam::{Affine3A, Vec3A};
+use rayon::prelude::*;
 
 /// Triangles per [`TriangleBlock`]: the bottom level's leaves are aligned to it.
 const TRIANGLE_BLOCK: usize = 4;
@@ -36,6 +38,9 @@ pub struct Geometry {
     support: SupportTable,
     /// Whether the mesh is nearly flat, as a terrain is: see [`Geometry::is_flat`].
     flat: bool,
+    /// For a flat mesh proven a height field: its axis and steepest slope, which rays
+    /// leaving it more steeply skip.
+    heightfield: Option<Heightfield>,
 }
 
 /// The largest ratio of a box's thinnest side to its middle one that
@@ -72,11 +77,30 @@ impl Geometry {
     ) -> Result<Self, MeshError> {
         mesh.check()?;
         let boxes = triangle_boxes(&mesh, params.split_ratio);
-        let bvh = Bvh::build(
-            &boxes.boxes,
-            BuildParams {
-                leaf_block: TRIANGLE_BLOCK,
-                ..params
+        let bounds = boxes
+            .boxes
+            .par_iter()
+            .copied()
+            .reduce(|| Aabb::EMPTY, Aabb::union);
+        let extent = bounds.extent();
+        let mut sides = extent.to_array();
+        sides.sort_by(f32::total_cmp);
+        let flat = sides[0] <= FLAT_RATIO * sides[1];
+        // The height-field proof runs beside the build, which leaves threads idle near
+        // its root.
+        let (bvh, heightfield) = rayon::join(
+            || {
+                Bvh::build(
+                    &boxes.boxes,
+                    BuildParams {
+                        leaf_block: TRIANGLE_BLOCK,
+                        ..params
+                    },
+                )
+            },
+            || {
+                flat.then(|| Heightfield::of(&mesh, extent.min_position()))
+                    .flatten()
             },
         );
         let blocks = bvh
@@ -93,12 +117,11 @@ impl Geometry {
                 TriangleBlock::new(&triangles[..lanes])
             })
             .collect();
-        let mut sides = bvh.bounds().extent().to_array();
-        sides.sort_by(f32::total_cmp);
         Ok(Self {
             name: name.into(),
             support: SupportTable::new(&mesh.positions),
-            flat: sides[0] <= FLAT_RATIO * sides[1],
+            flat,
+            heightfield,
             mesh,
             bvh,
             blocks,
@@ -110,6 +133,11 @@ impl Geometry {
     /// meets another, so shadow rays walk such an instance after the rest of the scene.
     pub fn is_flat(&self) -> bool {
         self.flat
+    }
+
+    /// The mesh's [height field](Heightfield) proof, for a flat mesh that is one.
+    pub fn heightfield(&self) -> Option<&Heightfield> {
+        self.heightfield.as_ref()
     }
 
     /// Object-space box.
@@ -261,6 +289,18 @@ impl Geometry {
         stats: &mut TraversalStats,
         accept: impl FnMut(u32, &TriangleHit) -> bool,
     ) -> Option<BlockRef> {
+        // A ray leaving a height field more steeply than its steepest triangle cannot meet
+        // it again (see `heightfield`): no walk. The proof is for a ray from a point of the
+        // surface; an origin rounded a hair below it on its way into object space could
+        // only graze a neighbour of the triangle it leaves, the self-hit that skipping
+        // `leaving` is there to avoid.
+        if leaving.is_some()
+            && self
+                .heightfield
+                .is_some_and(|field| field.clears(ray.direction))
+        {
+            return None;
+        }
         let mut leaves = AnyLeaves {
             leaf: LeafRay::new(kernel, self, ray),
             accept,

@@ -15,6 +15,7 @@ pub mod environment;
 pub mod film;
 pub mod fingerprint;
 pub mod geometry;
+pub mod heightfield;
 pub mod interleave;
 pub mod light;
 pub mod math;

@@ -7,6 +7,7 @@ use common::*;
 use glam::{Affine3A, Vec3A};
 use sylva_engine::bvh::{BuildParams, TraversalStats};
 use sylva_engine::geometry::{Geometry, GeometryId, GeometryLibrary};
+use sylva_engine::heightfield::Heightfield;
 use sylva_engine::math::Ray;
 use sylva_engine::mesh::TriangleMesh;
 use sylva_engine::tlas::{InstanceDesc, InstanceTriangle, TopLevel};
@@ -422,4 +423,225 @@ fn shadow_rays_leaving_a_flat_instance_see_every_occluder() {
     );
     // Each case must be reached for the walk order to be tested at all.
     assert!(by_ground_only > 500 && by_plants > 500 && free > 500);
+}
+
+/// The steepest rise over run of any of `mesh`'s triangles, along y.
+fn steepest_slope(mesh: &TriangleMesh) -> f32 {
+    (0..mesh.triangle_count())
+        .map(|i| {
+            let [a, b, c] = mesh.triangle(i);
+            let n = (b - a).cross(c - a);
+            (n.x * n.x + n.z * n.z).sqrt() / n.y.abs()
+        })
+        .fold(0.0, f32::max)
+}
+
+/// A ray leaving a random point of `mesh`'s triangle `triangle` (offset to the side it
+/// heads for) in `direction`.
+fn ray_leaving(mesh: &TriangleMesh, triangle: usize, rng: &mut TestRng, direction: Vec3A) -> Ray {
+    let [p0, p1, p2] = mesh.triangle(triangle);
+    let (u, v) = (rng.f32(), rng.f32());
+    let (u, v) = if u + v > 1.0 {
+        (1.0 - u, 1.0 - v)
+    } else {
+        (u, v)
+    };
+    let point = hit_point(p0, p1, p2, Vec3A::new(1.0 - u - v, u, v));
+    let n = (p1 - p0).cross(p2 - p0).normalize();
+    let n = if n.dot(direction) < 0.0 { -n } else { n };
+    Ray::new(point.offset_origin(n, direction), direction)
+}
+
+/// A terrain grid is proven a height field, also when its vertices are repeated along
+/// seams, with its steepest triangle's slope; rays leaving it more steeply (up or down)
+/// meet no other triangle (brute force), and a shadow ray's walk then visits none of its
+/// nodes. Slightly shallower rays do meet it: the bound is the slope itself.
+#[test]
+fn rays_steeper_than_a_height_field_never_meet_it() {
+    let mut rng = TestRng::new(47);
+    let ground = hilly_ground(40, 20.0, 1.6);
+    // The same surface with each row of quads on vertices of its own.
+    let mut seamed = TriangleMesh::default();
+    for (row, quads) in ground.indices.chunks(80).enumerate() {
+        let base = seamed.positions.len() as u32;
+        let first = row as u32 * 41;
+        seamed
+            .positions
+            .extend_from_slice(&ground.positions[first as usize..first as usize + 82]);
+        seamed.indices.extend(
+            quads
+                .iter()
+                .map(|triangle| triangle.map(|v| v - first + base)),
+        );
+        seamed
+            .shaders
+            .extend_from_slice(&ground.shaders[..quads.len()]);
+    }
+    let steepest = steepest_slope(&ground);
+    for mesh in [&ground, &seamed] {
+        let field = Heightfield::of(mesh, 1).expect("a terrain grid is a height field");
+        assert_eq!(field.up, 1);
+        let slope = field.max_slope_squared.sqrt();
+        assert!(
+            slope >= steepest && slope <= steepest * 1.001,
+            "steepest slope {slope}, brute force {steepest}"
+        );
+    }
+    let geometry = Geometry::new("ground", ground.clone(), BuildParams::BOTTOM_LEVEL).unwrap();
+    assert!(geometry.heightfield().is_some());
+    let mut lib = GeometryLibrary::default();
+    let id = lib.add(geometry);
+    let tlas = TopLevel::build(
+        &lib,
+        &[InstanceDesc {
+            transform: Affine3A::IDENTITY,
+            geometry: id,
+        }],
+        BuildParams::TOP_LEVEL,
+    );
+    let (mut steep_hits, mut shallow_hits, mut steep_nodes, mut steep_rays) = (0, 0, 0, 0);
+    for case in 0..20_000 {
+        let triangle = (rng.next_u64() % ground.triangle_count() as u64) as usize;
+        let steep = case % 2 == 0;
+        let slope = steepest
+            * if steep {
+                rng.range(1.001, 3.0)
+            } else {
+                rng.range(0.5, 0.999)
+            };
+        let azimuth = rng.range(0.0, std::f32::consts::TAU);
+        let sign = if case % 4 < 2 { 1.0 } else { -1.0 };
+        let direction = Vec3A::new(azimuth.cos(), sign * slope, azimuth.sin()).normalize();
+        let ray = ray_leaving(&ground, triangle, &mut rng, direction);
+        let hit = brute_closest(&ground, &ray, |t| t as usize != triangle).is_some();
+        let mut stats = TraversalStats::default();
+        let leaving = InstanceTriangle {
+            slot: 0,
+            triangle: triangle as u32,
+        };
+        let walked = tlas.intersect_any_leaving(&lib, &ray, Some(leaving), &mut stats, |_| true);
+        if steep {
+            assert!(!hit, "a ray steeper than the terrain meets it: {ray:?}");
+            assert!(!walked);
+            steep_nodes += stats.nodes_visited;
+            steep_rays += 1;
+        } else {
+            assert_eq!(walked, hit, "{ray:?} leaving triangle {triangle}");
+            shallow_hits += usize::from(hit);
+        }
+        steep_hits += usize::from(steep && hit);
+    }
+    assert_eq!(steep_hits, 0);
+    assert!(
+        shallow_hits > 200,
+        "only {shallow_hits} shallow rays met the hills"
+    );
+    // The top level's root at most: the terrain's own tree is not walked.
+    assert!(
+        steep_nodes <= steep_rays,
+        "{steep_nodes} nodes for {steep_rays} steep rays"
+    );
+}
+
+/// Quads of `size` over the cells (column, row) of a `columns` × `rows` grid that
+/// `keep` keeps, with vertex heights `height(x, z)`; shared corners shared.
+fn grid_surface(
+    columns: u32,
+    rows: u32,
+    size: f32,
+    keep: impl Fn(u32, u32) -> bool,
+    height: impl Fn(f32, f32) -> f32,
+) -> TriangleMesh {
+    let mut mesh = TriangleMesh::default();
+    let n = columns + 1;
+    for i in 0..=rows {
+        for j in 0..=columns {
+            let (x, z) = (j as f32 * size, i as f32 * size);
+            mesh.positions.push(glam::Vec3::new(x, height(x, z), z));
+        }
+    }
+    for i in 0..rows {
+        for j in (0..columns).filter(|&j| keep(j, i)) {
+            let v = i * n + j;
+            mesh.indices.push([v, v + n, v + n + 1]);
+            mesh.indices.push([v, v + n + 1, v + 1]);
+            mesh.shaders.extend([0, 0]);
+        }
+    }
+    mesh
+}
+
+/// Surfaces that are not height fields over a convex region are refused: a hole, a
+/// fold, a crack, a second layer, an upright wall, and a U-shaped region, over which a
+/// ray steeper than every triangle still meets the surface (climbing gently round the
+/// U, the far arm stands high above the near one across the gap).
+#[test]
+fn surfaces_that_are_not_height_fields_over_a_convex_region_are_refused() {
+    let hills = |x: f32, z: f32| 0.3 * (x * 0.9).sin() * (z * 0.7).cos();
+    let plain = grid_surface(8, 8, 1.0, |_, _| true, hills);
+    assert!(Heightfield::of(&plain, 1).is_some());
+    let holed = grid_surface(8, 8, 1.0, |j, i| (j, i) != (4, 3), hills);
+    let mut folded = plain.clone();
+    folded.indices[37].swap(1, 2);
+    let mut cracked = plain.clone();
+    // Vertex 40 (an inner corner) doubled, higher, for the triangles of one quad.
+    cracked
+        .positions
+        .push(plain.positions[40] + glam::Vec3::Y * 0.1);
+    for triangle in &mut cracked.indices[2 * 36..2 * 36 + 2] {
+        for v in triangle.iter_mut().filter(|v| **v == 40) {
+            *v = 81;
+        }
+    }
+    assert!(cracked.indices[72..74].iter().flatten().any(|&v| v == 81));
+    let mut layered = plain.clone();
+    let upper: Vec<_> = plain
+        .positions
+        .iter()
+        .map(|p| *p + glam::Vec3::Y * 2.0)
+        .collect();
+    layered.positions.extend(upper);
+    layered
+        .indices
+        .extend(plain.indices.iter().map(|t| t.map(|v| v + 81)));
+    layered.shaders.extend(plain.shaders.iter().copied());
+    let mut walled = plain.clone();
+    let wall_top = walled.positions.len() as u32;
+    walled.positions.push(plain.positions[0] + glam::Vec3::Y);
+    walled.indices.push([0, 1, wall_top]);
+    walled.shaders.push(0);
+    for (name, mesh) in [
+        ("holed", &holed),
+        ("folded", &folded),
+        ("cracked", &cracked),
+        ("layered", &layered),
+        ("walled", &walled),
+    ] {
+        mesh.check().unwrap();
+        assert_eq!(Heightfield::of(mesh, 1), None, "{name}");
+    }
+    // A U over x in [0, 6], z in [0, 3] without x in (1, 2), z > 1: the height climbs
+    // from the left arm's tip round the bottom to the right arm's tip.
+    let climb = |x: f32, z: f32| {
+        let g = if z > 1.0 && x <= 1.0 {
+            3.0 - z
+        } else if z > 1.0 {
+            4.0 + (z - 1.0)
+        } else {
+            2.0 + 2.0 * (x - 1.0).clamp(0.0, 1.0)
+        };
+        0.5 * g
+    };
+    let u_shape = grid_surface(12, 6, 0.5, |j, i| !((2..4).contains(&j) && i >= 2), climb);
+    let steepest = steepest_slope(&u_shape);
+    assert!((steepest - 1.0).abs() < 1e-5, "steepest {steepest}");
+    assert_eq!(Heightfield::of(&u_shape, 1), None, "U-shaped");
+    let across = Ray::new(
+        Vec3A::new(0.9, climb(0.9, 2.9) + 1e-3, 2.9),
+        Vec3A::new(1.0, 1.25 * steepest, 0.0).normalize(),
+    );
+    assert!(
+        brute_closest(&u_shape, &across, |_| true).is_some(),
+        "a ray steeper than every triangle meets the far arm"
+    );
 }
