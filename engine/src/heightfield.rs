@@ -42,8 +42,8 @@ const SLOPE_MARGIN: f64 = 1e-4;
 pub struct Heightfield {
     /// The axis the surface's height runs along (0 = x, 1 = y, 2 = z).
     pub up: usize,
-    /// The square of the steepest slope (rise over run) of any triangle, widened by
-    /// [`SLOPE_MARGIN`].
+    /// The square of the steepest slope (rise over run) of any triangle, widened by a
+    /// relative 10⁻⁴ for the rounding of [`Heightfield::clears`].
     pub max_slope_squared: f32,
     /// 1 on the two axes across `up`, 0 on `up`: picks a direction's run.
     across: Vec3A,
