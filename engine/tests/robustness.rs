@@ -289,29 +289,43 @@ fn shadow_rays_leaving_far_instances_do_not_shadow_their_own_triangle() {
     );
 }
 
-/// A `cells` × `cells` height field `size` metres wide with hills `relief` metres high
-/// and about `size / 4` apart, two triangles a cell, +Y up.
-fn hilly_ground(cells: u32, size: f32, relief: f32) -> TriangleMesh {
+/// Quads of `size` over the cells (column, row) of a `columns` × `rows` grid that
+/// `keep` keeps, with vertex heights `height(x, z)`; shared corners shared.
+fn grid_surface(
+    columns: u32,
+    rows: u32,
+    size: f32,
+    keep: impl Fn(u32, u32) -> bool,
+    height: impl Fn(f32, f32) -> f32,
+) -> TriangleMesh {
     let mut mesh = TriangleMesh::default();
-    let n = cells + 1;
-    for i in 0..n {
-        for j in 0..n {
-            let (x, z) = (
-                size * (j as f32 / cells as f32 - 0.5),
-                size * (i as f32 / cells as f32 - 0.5),
-            );
-            let k = std::f32::consts::TAU * 4.0 / size;
-            let y = 0.5 * relief * ((k * x).sin() * (k * z + 1.0).cos());
-            mesh.positions.push(glam::Vec3::new(x, y, z));
+    let n = columns + 1;
+    for i in 0..=rows {
+        for j in 0..=columns {
+            let (x, z) = (j as f32 * size, i as f32 * size);
+            mesh.positions.push(glam::Vec3::new(x, height(x, z), z));
         }
     }
-    for i in 0..cells {
-        for j in 0..cells {
+    for i in 0..rows {
+        for j in (0..columns).filter(|&j| keep(j, i)) {
             let v = i * n + j;
             mesh.indices.push([v, v + n, v + n + 1]);
             mesh.indices.push([v, v + n + 1, v + 1]);
             mesh.shaders.extend([0, 0]);
         }
+    }
+    mesh
+}
+
+/// A `cells` × `cells` height field `size` metres wide with hills `relief` metres high
+/// and about `size / 4` apart, two triangles a cell, +Y up, centred on the origin.
+fn hilly_ground(cells: u32, size: f32, relief: f32) -> TriangleMesh {
+    let (k, half) = (std::f32::consts::TAU * 4.0 / size, 0.5 * size);
+    let hills =
+        |x: f32, z: f32| 0.5 * relief * ((k * (x - half)).sin() * (k * (z - half) + 1.0).cos());
+    let mut mesh = grid_surface(cells, cells, size / cells as f32, |_, _| true, hills);
+    for p in &mut mesh.positions {
+        (p.x, p.z) = (p.x - half, p.z - half);
     }
     mesh
 }
@@ -541,34 +555,6 @@ fn rays_steeper_than_a_height_field_never_meet_it() {
         steep_nodes <= steep_rays,
         "{steep_nodes} nodes for {steep_rays} steep rays"
     );
-}
-
-/// Quads of `size` over the cells (column, row) of a `columns` × `rows` grid that
-/// `keep` keeps, with vertex heights `height(x, z)`; shared corners shared.
-fn grid_surface(
-    columns: u32,
-    rows: u32,
-    size: f32,
-    keep: impl Fn(u32, u32) -> bool,
-    height: impl Fn(f32, f32) -> f32,
-) -> TriangleMesh {
-    let mut mesh = TriangleMesh::default();
-    let n = columns + 1;
-    for i in 0..=rows {
-        for j in 0..=columns {
-            let (x, z) = (j as f32 * size, i as f32 * size);
-            mesh.positions.push(glam::Vec3::new(x, height(x, z), z));
-        }
-    }
-    for i in 0..rows {
-        for j in (0..columns).filter(|&j| keep(j, i)) {
-            let v = i * n + j;
-            mesh.indices.push([v, v + n, v + n + 1]);
-            mesh.indices.push([v, v + n + 1, v + 1]);
-            mesh.shaders.extend([0, 0]);
-        }
-    }
-    mesh
 }
 
 /// Surfaces that are not height fields over a convex region are refused: a hole, a
