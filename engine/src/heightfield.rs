@@ -164,7 +164,7 @@ fn boundary_edges(mesh: &TriangleMesh) -> Option<HashMap<u32, u32>> {
         |from: u32| &ends[first[from as usize] as usize..first[from as usize + 1] as usize];
     // An edge used twice in one direction (or three times) shows as a repeated end; one
     // used once has no edge back: a boundary edge.
-    let boundary: Option<Vec<(u32, u32)>> = (0..mesh.positions.len() as u32)
+    let boundary = (0..mesh.positions.len() as u32)
         .into_par_iter()
         .filter(|&from| id[from as usize] == from)
         .map(|from| {
@@ -180,12 +180,10 @@ fn boundary_edges(mesh: &TriangleMesh) -> Option<HashMap<u32, u32>> {
             }
             Some(open)
         })
-        .flat_map_iter(|open| match open {
-            Some(open) => open.into_iter().map(Some).collect::<Vec<_>>(),
-            None => vec![None],
-        })
-        .collect();
-    let boundary = boundary?;
+        .try_reduce(Vec::new, |mut open, more| {
+            open.extend(more);
+            Some(open)
+        })?;
     let mut next = HashMap::with_capacity(boundary.len());
     for (from, to) in boundary {
         // Two boundary edges leaving one corner: not a single simple loop.
