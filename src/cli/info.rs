@@ -34,21 +34,21 @@ pub(crate) fn run(args: SceneArgs) -> Result<()> {
             .iter()
             .filter(|p| p.geometry == s.geometry)
             .count();
-        let tris = scene
-            .library
-            .get(s.geometry)
-            .map_or(0, |g| g.mesh.triangle_count());
+        let geometry = scene.library.get(s.geometry);
+        let tris = geometry.map_or(0, |g| g.mesh.triangle_count());
         println!(
-            "  {:<22} {:>9} triangles  {:>9} instances",
+            "  {:<22} {:>9} triangles  {:>9} instances{}",
             s.name,
             group(tris as u64),
-            group(count as u64)
+            group(count as u64),
+            geometry.map_or(String::new(), height_field_note)
         );
     }
     if let Some(t) = scene.terrain.and_then(|t| scene.library.get(t)) {
         println!(
-            "terrain          {} triangles",
-            group(t.mesh.triangle_count() as u64)
+            "terrain          {} triangles{}",
+            group(t.mesh.triangle_count() as u64),
+            height_field_note(t)
         );
     }
     println!("layers           {}", scene.layers.len());
@@ -100,4 +100,15 @@ pub(crate) fn run(args: SceneArgs) -> Result<()> {
         peak_memory_bytes().map_or("unknown".into(), |b| format!("{:.0} MB", b as f64 / 1e6))
     );
     Ok(())
+}
+
+/// For a mesh proven a height field: its steepest slope, which shadow rays leaving it
+/// more steeply skip its walk for.
+fn height_field_note(geometry: &sylva::engine::geometry::Geometry) -> String {
+    geometry.heightfield().map_or(String::new(), |field| {
+        format!(
+            ", a height field (steepest slope {:.3})",
+            field.max_slope_squared.sqrt()
+        )
+    })
 }
