@@ -51,15 +51,16 @@ pub struct Heightfield {
 
 impl Heightfield {
     /// Proves `mesh` a height field over `up` and finds its steepest slope; `None` when
-    /// it is not one (or when the proof cannot be made in f64, for a triangle standing
-    /// nearly upright or a corner that is not finite).
+    /// it is not one, when `mesh` fails [`TriangleMesh::check`] or `up` is not an axis, or
+    /// when the proof cannot be made in f64 (a triangle standing nearly upright).
     pub fn of(mesh: &TriangleMesh, up: usize) -> Option<Self> {
         let (u, v) = ((up + 1) % 3, (up + 2) % 3);
         let corner = |index: u32| {
             let p = mesh.positions[index as usize];
             (p[u] as f64, p[v] as f64, p[up] as f64)
         };
-        if mesh.indices.is_empty() || mesh.positions.iter().any(|p| !p.is_finite()) {
+        // Indices in range and finite corners (`TriangleMesh::check`), or no proof.
+        if mesh.indices.is_empty() || mesh.check().is_err() || up > 2 {
             return None;
         }
         // Which orientations the triangles have in projection (1 counter-clockwise, 2

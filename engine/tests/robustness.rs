@@ -596,6 +596,11 @@ fn surfaces_that_are_not_height_fields_over_a_convex_region_are_refused() {
     walled.positions.push(plain.positions[0] + glam::Vec3::Y);
     walled.indices.push([0, 1, wall_top]);
     walled.shaders.push(0);
+    let mut broken = plain.clone();
+    broken.indices[5][1] = 1000;
+    assert!(broken.check().is_err());
+    assert_eq!(Heightfield::of(&broken, 1), None, "an index out of range");
+    assert_eq!(Heightfield::of(&plain, 3), None, "no fourth axis");
     for (name, mesh) in [
         ("holed", &holed),
         ("folded", &folded),
