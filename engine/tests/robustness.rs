@@ -557,6 +557,63 @@ fn rays_steeper_than_a_height_field_never_meet_it() {
     );
 }
 
+/// Whatever a randomly damaged grid becomes (corners moved up, down and sideways, so
+/// that some triangles fold over; triangles dropped, at the edge or inside; windings
+/// flipped), when the proof accepts it, no ray leaving one of its triangles more steeply
+/// than the proven slope meets another (brute force); and both verdicts occur.
+#[test]
+fn a_height_field_proof_holds_on_randomly_damaged_grids() {
+    let mut rng = TestRng::new(59);
+    let (mut accepted, mut refused, mut rays) = (0, 0, 0);
+    for _ in 0..400 {
+        let mut mesh = grid_surface(6, 6, 1.0, |_, _| true, |x, z| 0.2 * (x + z).sin());
+        for _ in 0..(rng.next_u64() % 4) {
+            let v = (rng.next_u64() % mesh.positions.len() as u64) as usize;
+            let p = &mut mesh.positions[v];
+            match rng.next_u64() % 3 {
+                0 => p.y += rng.range(-3.0, 3.0),
+                1 => p.x += rng.range(-0.6, 0.6),
+                _ => p.z += rng.range(-1.2, 1.2),
+            }
+        }
+        for _ in 0..(rng.next_u64() % 3) {
+            let t = (rng.next_u64() % mesh.indices.len() as u64) as usize;
+            if rng.next_u64() % 2 == 0 {
+                mesh.indices.remove(t);
+                mesh.shaders.pop();
+            } else {
+                mesh.indices[t].swap(0, 1);
+            }
+        }
+        let Some(field) = Heightfield::of(&mesh, 1) else {
+            refused += 1;
+            continue;
+        };
+        accepted += 1;
+        let slope = field.max_slope_squared.sqrt();
+        for case in 0..400 {
+            let triangle = (rng.next_u64() % mesh.triangle_count() as u64) as usize;
+            let azimuth = rng.range(0.0, std::f32::consts::TAU);
+            let sign = if case % 2 == 0 { 1.0 } else { -1.0 };
+            let rise = sign * slope * rng.range(1.001, 1.2);
+            let direction = Vec3A::new(azimuth.cos(), rise, azimuth.sin()).normalize();
+            assert!(field.clears(direction));
+            let ray = ray_leaving(&mesh, triangle, &mut rng, direction);
+            assert_eq!(
+                brute_closest(&mesh, &ray, |t| t as usize != triangle),
+                None,
+                "{ray:?} leaving triangle {triangle} of an accepted mesh"
+            );
+            rays += 1;
+        }
+    }
+    eprintln!("{accepted} accepted ({rays} rays), {refused} refused");
+    assert!(
+        accepted > 50 && refused > 50,
+        "{accepted} accepted, {refused} refused"
+    );
+}
+
 /// Surfaces that are not height fields over a convex region are refused: a hole, a
 /// fold, a crack, a second layer, an upright wall, and a U-shaped region, over which a
 /// ray steeper than every triangle still meets the surface (climbing gently round the
