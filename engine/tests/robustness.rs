@@ -578,7 +578,7 @@ fn a_height_field_proof_holds_on_randomly_damaged_grids() {
         }
         for _ in 0..(rng.next_u64() % 3) {
             let t = (rng.next_u64() % mesh.indices.len() as u64) as usize;
-            if rng.next_u64() % 2 == 0 {
+            if rng.next_u64().is_multiple_of(2) {
                 mesh.indices.remove(t);
                 mesh.shaders.pop();
             } else {
