@@ -177,6 +177,15 @@ impl Geometry {
         stats: &mut TraversalStats,
         accept: impl FnMut(u32, &TriangleHit) -> bool,
     ) -> Option<GeometryHit> {
+        // As in `occluding_block_with`: a ray leaving a height field more steeply than
+        // its steepest triangle (a diffuse bounce off a terrain, most often) cannot meet it.
+        if leaving.is_some()
+            && self
+                .heightfield
+                .is_some_and(|field| field.clears(ray.direction))
+        {
+            return None;
+        }
         let mut leaves = ClosestLeaves {
             leaf: LeafRay::new(kernel, self, ray),
             accept,

@@ -5,6 +5,7 @@ mod common;
 
 use common::*;
 use glam::{Affine3A, Vec3A};
+use sylva_engine::bvh::simd::Portable;
 use sylva_engine::bvh::{BuildParams, TraversalStats};
 use sylva_engine::geometry::{Geometry, GeometryId, GeometryLibrary};
 use sylva_engine::heightfield::Heightfield;
@@ -534,7 +535,26 @@ fn rays_steeper_than_a_height_field_never_meet_it() {
             triangle: triangle as u32,
         };
         let walked = tlas.intersect_any_leaving(&lib, &ray, Some(leaving), &mut stats, |_| true);
+        // A bounce's closest hit the same way, with the portable kernel.
+        let mut closest_stats = TraversalStats::default();
+        let closest = tlas.intersect_closest_with(
+            Portable,
+            &lib,
+            &ray,
+            Some(leaving),
+            &mut closest_stats,
+            |_| true,
+        );
+        assert_eq!(
+            closest.map(|hit| hit.t),
+            brute_closest(&ground, &ray, |t| t as usize != triangle).map(|(t, _)| t),
+            "closest hit of {ray:?} leaving triangle {triangle}"
+        );
         if steep {
+            assert!(
+                closest_stats.nodes_visited <= 1,
+                "a steep bounce walked the terrain"
+            );
             assert!(!hit, "a ray steeper than the terrain meets it: {ray:?}");
             assert!(!walked);
             steep_nodes += stats.nodes_visited;
