@@ -5,6 +5,7 @@
 use super::simd::{NodeKernel, prefetch_children, prefetch_node, with_node_kernel};
 use super::{Bvh, WIDTH, WideNode};
 use crate::math::{Ray, gamma};
+use arrayvec::ArrayVec;
 use glam::Vec3A;
 
 /// Counters a traversal updates: cheap enough to leave on in release builds. Summed per
@@ -206,45 +207,39 @@ struct Pending {
     t: f32,
 }
 
-/// Entries kept inline; deeper trees spill to the heap. Zero-filling a stack sized for
-/// the worst case cost more than the traversal itself (every instance runs one).
+/// Entries kept inline; deeper trees spill to the heap.
 const INLINE_STACK: usize = 24;
 
-/// A traversal stack: a small inline array with a heap spill for deep trees.
+/// A traversal stack: a small inline array with a heap spill for deep trees. The inline
+/// part starts uninitialised (`ArrayVec`): zero-filling it cost 2.2 % of a `paper`
+/// frame's instructions, every bottom-level entry making a stack of its own.
 pub(super) struct Stack<T> {
-    inline: [T; INLINE_STACK],
-    len: usize,
+    inline: ArrayVec<T, INLINE_STACK>,
     spill: Vec<T>,
 }
 
-impl<T: Copy + Default> Stack<T> {
+impl<T> Stack<T> {
     #[inline(always)]
     pub(super) fn new() -> Self {
         Self {
-            inline: [T::default(); INLINE_STACK],
-            len: 0,
+            inline: ArrayVec::new(),
             spill: Vec::new(),
         }
     }
 
     #[inline(always)]
     pub(super) fn push(&mut self, entry: T) {
-        if self.len < INLINE_STACK {
-            self.inline[self.len] = entry;
-        } else {
+        if self.inline.is_full() {
             self.spill.push(entry);
+        } else {
+            self.inline.push(entry);
         }
-        self.len += 1;
     }
 
     #[inline(always)]
     pub(super) fn pop(&mut self) -> Option<T> {
-        if self.len == 0 {
-            return None;
-        }
-        self.len -= 1;
-        if self.len < INLINE_STACK {
-            Some(self.inline[self.len])
+        if self.spill.is_empty() {
+            self.inline.pop()
         } else {
             self.spill.pop()
         }
@@ -537,5 +532,28 @@ impl Bvh {
         }
         stats.nodes_visited += nodes;
         stats.primitive_tests += primitives;
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn the_stack_spills_past_its_inline_part_and_stays_last_in_first_out() {
+        let mut stack = Stack::new();
+        let mut model = Vec::new();
+        // Up past the inline part, down into it, up again, then empty.
+        for (pushes, pops) in [(INLINE_STACK + 10, 15), (20, 5), (0, 200)] {
+            for i in 0..pushes {
+                let value = (model.len() * 7 + i) as u32;
+                stack.push(value);
+                model.push(value);
+            }
+            for _ in 0..pops {
+                assert_eq!(stack.pop(), model.pop());
+            }
+        }
+        assert_eq!(stack.pop(), None);
     }
 }
