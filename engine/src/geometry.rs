@@ -140,6 +140,20 @@ impl Geometry {
         self.heightfield.as_ref()
     }
 
+    /// True when `ray` leaves this mesh (a triangle `leaving` of it) and the mesh is a
+    /// height field the ray climbs or falls more steeply than: it cannot meet the mesh
+    /// again (see `heightfield`), so no walk is needed. The proof is for a ray from a
+    /// point of the surface; an origin rounded a hair below it on its way into object
+    /// space could only graze a neighbour of the triangle it leaves, the self-hit that
+    /// skipping `leaving` is there to avoid.
+    #[inline(always)]
+    fn cleared_by(&self, ray: &Ray, leaving: Option<u32>) -> bool {
+        leaving.is_some()
+            && self
+                .heightfield
+                .is_some_and(|field| field.clears(ray.direction))
+    }
+
     /// Object-space box.
     pub fn bounds(&self) -> Aabb {
         self.bvh.bounds()
@@ -177,13 +191,7 @@ impl Geometry {
         stats: &mut TraversalStats,
         accept: impl FnMut(u32, &TriangleHit) -> bool,
     ) -> Option<GeometryHit> {
-        // As in `occluding_block_with`: a ray leaving a height field more steeply than
-        // its steepest triangle (a diffuse bounce off a terrain, most often) cannot meet it.
-        if leaving.is_some()
-            && self
-                .heightfield
-                .is_some_and(|field| field.clears(ray.direction))
-        {
+        if self.cleared_by(ray, leaving) {
             return None;
         }
         let mut leaves = ClosestLeaves {
@@ -298,16 +306,7 @@ impl Geometry {
         stats: &mut TraversalStats,
         accept: impl FnMut(u32, &TriangleHit) -> bool,
     ) -> Option<BlockRef> {
-        // A ray leaving a height field more steeply than its steepest triangle cannot meet
-        // it again (see `heightfield`): no walk. The proof is for a ray from a point of the
-        // surface; an origin rounded a hair below it on its way into object space could
-        // only graze a neighbour of the triangle it leaves, the self-hit that skipping
-        // `leaving` is there to avoid.
-        if leaving.is_some()
-            && self
-                .heightfield
-                .is_some_and(|field| field.clears(ray.direction))
-        {
+        if self.cleared_by(ray, leaving) {
             return None;
         }
         let mut leaves = AnyLeaves {
