@@ -713,3 +713,51 @@ fn surfaces_that_are_not_height_fields_over_a_convex_region_are_refused() {
         "a ray steeper than every triangle meets the far arm"
     );
 }
+
+/// Shadow rays leaving a triangle of a dense clump of 6,000 small triangles (a plant's
+/// own instance, walked first) find an occluder exactly when a brute force over all its
+/// other triangles does, in any direction: the triangle left is skipped, nothing else,
+/// whatever order the walk takes the clump's subtrees in.
+#[test]
+fn shadow_rays_leaving_a_plant_see_occluders_near_and_far() {
+    let mut rng = TestRng::new(53);
+    let mesh = random_mesh(&mut rng, 6_000, 2.0, 0.15);
+    let mut lib = GeometryLibrary::default();
+    let id = lib.add(Geometry::new("clump", mesh.clone(), BuildParams::BOTTOM_LEVEL).unwrap());
+    assert!(!lib.geometries[0].is_flat());
+    let tlas = TopLevel::build(
+        &lib,
+        &[InstanceDesc {
+            transform: Affine3A::IDENTITY,
+            geometry: id,
+        }],
+        BuildParams::TOP_LEVEL,
+    );
+    let (mut occluded, mut open, mut wrong) = (0, 0, 0);
+    for _ in 0..6_000 {
+        let triangle = (rng.next_u64() % mesh.triangle_count() as u64) as usize;
+        let direction = Vec3A::from(rng.unit());
+        let ray = ray_leaving(&mesh, triangle, &mut rng, direction);
+        let expected = brute_closest(&mesh, &ray, |t| t as usize != triangle).is_some();
+        let leaving = InstanceTriangle {
+            slot: 0,
+            triangle: triangle as u32,
+        };
+        let mut stats = TraversalStats::default();
+        let found = tlas.intersect_any_leaving(&lib, &ray, Some(leaving), &mut stats, |_| true);
+        wrong += usize::from(found != expected);
+        if expected {
+            occluded += 1;
+        } else {
+            open += 1;
+        }
+    }
+    assert!(
+        occluded > 1_000 && open > 1_000,
+        "{occluded} occluded, {open} open"
+    );
+    assert_eq!(
+        wrong, 0,
+        "{wrong} rays answered differently from the brute force"
+    );
+}
