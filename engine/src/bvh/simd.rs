@@ -67,7 +67,20 @@ pub trait NodeKernel: Copy {
     /// Entry distances of the children and a bitmask of the lanes whose box the ray
     /// enters (conservatively) with an entry distance below `limit` (bit `i` for lane
     /// `i`): `limit` is a closest hit widened for the slab test's rounding (`entry_limit`).
-    fn hit_children(self, ray: &NodeRay, node: &WideNode, limit: f32) -> ([f32; WIDTH], u32);
+    #[inline(always)]
+    fn hit_children(self, ray: &NodeRay, node: &WideNode, limit: f32) -> ([f32; WIDTH], u32) {
+        let (t, _, mask) = self.hit_children_spans(ray, node, limit);
+        (t, mask)
+    }
+
+    /// [`hit_children`](Self::hit_children) with each child's span: how far the ray runs
+    /// inside its box (the widened exit distance less the entry distance).
+    fn hit_children_spans(
+        self,
+        ray: &NodeRay,
+        node: &WideNode,
+        limit: f32,
+    ) -> ([f32; WIDTH], [f32; WIDTH], u32);
 
     /// `Bvh::traverse_closest_packet` on this kernel: with AVX2, one function compiled
     /// for it, so the packet's box tests inline into the walk.
@@ -122,15 +135,21 @@ pub struct Portable;
 
 impl NodeKernel for Portable {
     #[inline(always)]
-    fn hit_children(self, ray: &NodeRay, node: &WideNode, limit: f32) -> ([f32; WIDTH], u32) {
-        let mut t = [0.0; WIDTH];
+    fn hit_children_spans(
+        self,
+        ray: &NodeRay,
+        node: &WideNode,
+        limit: f32,
+    ) -> ([f32; WIDTH], [f32; WIDTH], u32) {
+        let (mut t, mut span) = ([0.0; WIDTH], [0.0; WIDTH]);
         let mut mask = 0;
         for half in 0..WIDTH / 4 {
-            let (lane_t, lane_mask) = hit_half(ray, node, half * 4, limit);
+            let (lane_t, lane_span, lane_mask) = hit_half(ray, node, half * 4, limit);
             t[half * 4..half * 4 + 4].copy_from_slice(&lane_t.to_array());
+            span[half * 4..half * 4 + 4].copy_from_slice(&lane_span.to_array());
             mask |= lane_mask << (half * 4);
         }
-        (t, mask)
+        (t, span, mask)
     }
 
     #[inline(always)]
@@ -149,7 +168,7 @@ impl NodeKernel for Portable {
 /// the same operations in the same order, except that AVX2 reads each axis's near plane
 /// by the direction's sign where that equals the min and max taken here.
 #[inline(always)]
-fn hit_half(ray: &NodeRay, node: &WideNode, first: usize, limit: f32) -> (Vec4, u32) {
+fn hit_half(ray: &NodeRay, node: &WideNode, first: usize, limit: f32) -> (Vec4, Vec4, u32) {
     let lanes = |a: &[f32; WIDTH]| Vec4::from_slice(&a[first..first + 4]);
     let [ox, oy, oz] = ray.origin.map(Vec4::splat);
     let [ix, iy, iz] = ray.inv_dir.map(Vec4::splat);
@@ -185,7 +204,7 @@ fn hit_half(ray: &NodeRay, node: &WideNode, first: usize, limit: f32) -> (Vec4, 
     let t_near = x0.min(x1).max(y0.min(y1)).max(z0.min(z1).max(Vec4::ZERO));
     let t_far = x0.max(x1).min(y0.max(y1)).min(z0.max(z1)) * FAR_SCALE;
     let hit = t_near.cmple(t_far) & t_near.cmplt(Vec4::splat(limit)) & used;
-    (t_near, hit.bitmask())
+    (t_near, t_far - t_near, hit.bitmask())
 }
 
 #[cfg(target_arch = "x86_64")]
@@ -424,9 +443,14 @@ mod avx2 {
         }
 
         #[inline(always)]
-        fn hit_children(self, ray: &NodeRay, node: &WideNode, limit: f32) -> ([f32; WIDTH], u32) {
+        fn hit_children_spans(
+            self,
+            ray: &NodeRay,
+            node: &WideNode,
+            limit: f32,
+        ) -> ([f32; WIDTH], [f32; WIDTH], u32) {
             // SAFETY: `self` exists only when `detect` found AVX2 on this CPU.
-            unsafe { hit_children(ray, node, limit) }
+            unsafe { hit_children_spans(ray, node, limit) }
         }
 
         #[inline(always)]
@@ -673,7 +697,11 @@ mod avx2 {
     /// The portable kernel's results bit for bit, eight lanes at once.
     #[target_feature(enable = "avx2")]
     #[inline]
-    fn hit_children(ray: &NodeRay, node: &WideNode, limit: f32) -> ([f32; WIDTH], u32) {
+    fn hit_children_spans(
+        ray: &NodeRay,
+        node: &WideNode,
+        limit: f32,
+    ) -> ([f32; WIDTH], [f32; WIDTH], u32) {
         // SAFETY: the arrays hold WIDTH = 8 floats, one 256-bit register's worth.
         let load = |a: &[f32; WIDTH]| unsafe { _mm256_loadu_ps(a.as_ptr()) };
         let [ox, oy, oz] = ray.origin.map(|v| _mm256_set1_ps(v));
@@ -737,10 +765,13 @@ mod avx2 {
         if let Some(used) = used {
             hit = _mm256_and_ps(hit, used);
         }
-        let mut t = [0.0; WIDTH];
-        // SAFETY: `t` holds WIDTH = 8 floats.
-        unsafe { _mm256_storeu_ps(t.as_mut_ptr(), near) };
-        (t, _mm256_movemask_ps(hit) as u32)
+        let (mut t, mut span) = ([0.0; WIDTH], [0.0; WIDTH]);
+        // SAFETY: `t` and `span` hold WIDTH = 8 floats each.
+        unsafe {
+            _mm256_storeu_ps(t.as_mut_ptr(), near);
+            _mm256_storeu_ps(span.as_mut_ptr(), _mm256_sub_ps(t_far, near));
+        }
+        (t, span, _mm256_movemask_ps(hit) as u32)
     }
 }
 
@@ -836,11 +867,16 @@ mod tests {
         let avx2 = avx2_here();
         let mut hits = 0;
         for (ray, node, t_max) in cases() {
-            let (t_a, m_a) = avx2.hit_children(&ray, &node, t_max);
-            let (t_p, m_p) = Portable.hit_children(&ray, &node, t_max);
+            let (t_a, s_a, m_a) = avx2.hit_children_spans(&ray, &node, t_max);
+            let (t_p, s_p, m_p) = Portable.hit_children_spans(&ray, &node, t_max);
             assert_eq!(m_a, m_p, "masks differ for {ray:?} {node:?}");
             for lane in 0..WIDTH {
                 assert_eq!(t_a[lane].to_bits(), t_p[lane].to_bits(), "lane {lane}");
+                assert_eq!(
+                    s_a[lane].to_bits(),
+                    s_p[lane].to_bits(),
+                    "span, lane {lane}"
+                );
             }
             hits += m_a.count_ones();
         }
