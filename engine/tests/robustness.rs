@@ -505,15 +505,8 @@ fn rays_steeper_than_a_height_field_never_meet_it() {
     let geometry = Geometry::new("ground", ground.clone(), BuildParams::BOTTOM_LEVEL).unwrap();
     assert!(geometry.heightfield().is_some());
     let mut lib = GeometryLibrary::default();
-    let id = lib.add(geometry);
-    let tlas = TopLevel::build(
-        &lib,
-        &[InstanceDesc {
-            transform: Affine3A::IDENTITY,
-            geometry: id,
-        }],
-        BuildParams::TOP_LEVEL,
-    );
+    lib.add(geometry);
+    let tlas = single_instance(&lib, Affine3A::IDENTITY);
     let (mut steep_hits, mut shallow_hits, mut steep_nodes, mut steep_rays) = (0, 0, 0, 0);
     for case in 0..20_000 {
         let triangle = (rng.next_u64() % ground.triangle_count() as u64) as usize;
@@ -723,16 +716,9 @@ fn shadow_rays_leaving_a_plant_see_occluders_near_and_far() {
     let mut rng = TestRng::new(53);
     let mesh = random_mesh(&mut rng, 6_000, 2.0, 0.15);
     let mut lib = GeometryLibrary::default();
-    let id = lib.add(Geometry::new("clump", mesh.clone(), BuildParams::BOTTOM_LEVEL).unwrap());
+    lib.add(Geometry::new("clump", mesh.clone(), BuildParams::BOTTOM_LEVEL).unwrap());
     assert!(!lib.geometries[0].is_flat());
-    let tlas = TopLevel::build(
-        &lib,
-        &[InstanceDesc {
-            transform: Affine3A::IDENTITY,
-            geometry: id,
-        }],
-        BuildParams::TOP_LEVEL,
-    );
+    let tlas = single_instance(&lib, Affine3A::IDENTITY);
     let (mut occluded, mut open, mut wrong) = (0, 0, 0);
     for _ in 0..6_000 {
         let triangle = (rng.next_u64() % mesh.triangle_count() as u64) as usize;
