@@ -1,12 +1,14 @@
 //! Ray throughput on the default scene at 640×480 (primary closest-hit, sun shadow
 //! any-hit, incoherent diffuse-bounce closest-hit) and the time of a full 4 spp frame,
-//! on a 2-thread pool.
+//! on a 2-thread pool; and the discontinuity filter over that frame's pixels, as an
+//! interactive frame shows them.
 
 mod support;
 
 use criterion::{Criterion, Throughput, criterion_group, criterion_main};
 use std::time::Duration;
 use support::{BenchScene, count_rays, two_thread_pool};
+use sylva::engine::discontinuity::{DiscontinuityFilter, GuidedImage};
 use sylva::engine::render::{RenderParams, render_frame};
 
 fn rays(c: &mut Criterion) {
@@ -49,6 +51,39 @@ fn rays(c: &mut Criterion) {
     };
     group.bench_function("render_4spp_2_threads", |b| {
         b.iter(|| pool.install(|| render_frame(&scene, &bench.view, &params, 0, &|_| {})))
+    });
+    group.finish();
+
+    // One frame's surfaces, albedo and radiance at 1 spp, the interactive preset's
+    // sampling, for the filter that shows it.
+    let frame = pool.install(|| {
+        render_frame(
+            &scene,
+            &bench.view,
+            &RenderParams {
+                samples_per_pixel: 1,
+                light_samples: 1,
+                ..RenderParams::default()
+            },
+            0,
+            &|_| {},
+        )
+    });
+    let (radiance, albedo, emission) = (frame.mean(), frame.mean_albedo(), frame.mean_emission());
+    let image = GuidedImage {
+        width: frame.width,
+        height: frame.height,
+        radiance: &radiance,
+        albedo: &albedo,
+        emission: &emission,
+        surfaces: &frame.surfaces,
+    };
+    let filter = DiscontinuityFilter::for_pattern(4);
+    let mut group = c.benchmark_group("meadow_display_640x480");
+    group.sample_size(30);
+    group.throughput(Throughput::Elements(radiance.len() as u64));
+    group.bench_function("discontinuity_filter_4x4_2_threads", |b| {
+        b.iter(|| pool.install(|| filter.apply(&image)))
     });
     group.finish();
 }
