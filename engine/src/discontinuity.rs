@@ -8,7 +8,7 @@
 
 use crate::render::SurfaceGuide;
 use bevy_ecs::component::Component;
-use glam::Vec3;
+use glam::{UVec4, Vec3, Vec3A, Vec4};
 use rayon::prelude::*;
 
 /// What the filter reads: a `width`×`height` image's per-pixel radiance and albedo
@@ -93,6 +93,7 @@ impl DiscontinuityFilter {
     /// shader, normals close, and `b` no farther from `a`'s tangent plane than the depth
     /// tolerance. (Distances from the camera do not separate parallel surfaces seen at a
     /// grazing angle: two floors 1 m apart, 20 m away, lie within 2 % of each other.)
+    #[cfg(test)]
     fn same_surface(&self, a: &SurfaceGuide, b: &SurfaceGuide) -> bool {
         a.shader == b.shader
             && b.is_surface()
@@ -100,9 +101,16 @@ impl DiscontinuityFilter {
             && a.normal.dot(b.position - a.position).abs() <= self.depth_tolerance * a.depth
     }
 
-    /// Filters an image: its per-pixel radiance guided by albedo and surfaces. Pixels without a surface, or with an
-    /// albedo channel too dark to divide by, keep their radiance; so do neighbours'
-    /// contributions that cannot be demodulated (they are left out of the average).
+    /// Filters an image: its per-pixel radiance guided by albedo and surfaces. Pixels
+    /// without a surface, or with an albedo channel too dark to divide by, keep their
+    /// radiance; so do neighbours' contributions that cannot be demodulated (they are left
+    /// out of the average).
+    ///
+    /// Each window row's neighbours are judged four at a time: the surfaces are split
+    /// into one array per value, and the normal and tangent-plane tests run in four lanes
+    /// with the scalar test's operations in its order, so the same neighbours pass and
+    /// their light adds up in the same order: the result is the one-by-one filter's to
+    /// the bit (`paper`'s interactive frame at 640×480: 19.5–22 → 13.4–15 ms).
     pub fn apply(&self, image: &GuidedImage) -> Vec<Vec3> {
         let &GuidedImage {
             width,
@@ -120,7 +128,6 @@ impl DiscontinuityFilter {
                 && surfaces.len() == w * h,
             "filter buffers must hold width × height pixels"
         );
-        const DARKEST: f32 = 1e-4;
         let n = self.window as isize;
         // A centred window: offsets -(n/2) .. n - 1 - n/2 cover every pixel class once.
         let (lo, hi) = (-(n / 2), n - 1 - n / 2);
@@ -128,47 +135,51 @@ impl DiscontinuityFilter {
         if n <= 1 || w == 0 || h == 0 {
             return out;
         }
-        // Per pixel once, not once per window that holds it (N² times): its light, and
-        // whether it takes part (a surface, with an albedo bright enough to divide by).
-        // Emission comes off before dividing and goes back on after; where the film's
-        // mean and this frame's emission disagree (emissive edges) the received light
-        // is kept from going negative.
-        let (lights, usable): (Vec<Vec3>, Vec<bool>) = radiance
-            .par_iter()
-            .zip(albedo)
-            .zip(emission)
-            .zip(surfaces)
-            .map(|(((r, a), e), s)| {
-                let received = if *e == Vec3::ZERO {
-                    *r
-                } else {
-                    (*r - *e).max(Vec3::ZERO)
-                };
-                (received / *a, s.is_surface() && a.min_element() > DARKEST)
-            })
-            .unzip();
+        let pixels = Pixels::new(image);
         // Rows in parallel on the current rayon pool; each pixel's result depends only on
         // the inputs, so the image is the same for any thread count.
         out.par_chunks_mut(w).enumerate().for_each(|(y, row)| {
             let rows = y.saturating_add_signed(lo)..=y.saturating_add_signed(hi).min(h - 1);
             for (x, pixel) in row.iter_mut().enumerate() {
                 let i = y * w + x;
-                if !usable[i] {
+                if !pixels.usable[i] {
                     continue;
                 }
+                let key = pixels.keys[i];
                 let here = &surfaces[i];
                 let columns = x.saturating_add_signed(lo)..=x.saturating_add_signed(hi).min(w - 1);
-                let (mut light, mut count) = (Vec3::ZERO, 0u32);
+                let (mut light, mut count) = (Vec3A::ZERO, 0u32);
+                let mut gather = |first: usize, mut same: u32| {
+                    while same != 0 {
+                        light += pixels.lights[first + same.trailing_zeros() as usize];
+                        count += 1;
+                        same &= same - 1;
+                    }
+                };
+                let width = columns.end() - columns.start() + 1;
                 for ny in rows.clone() {
-                    for nx in columns.clone() {
-                        let j = ny * w + nx;
-                        if j == i || (usable[j] && self.same_surface(here, &surfaces[j])) {
-                            light += lights[j];
-                            count += 1;
+                    let mut first = ny * w + columns.start();
+                    if width == LANES {
+                        // A whole window row in one group (N = 4 away from the sides).
+                        let mut same = pixels.same_surfaces(self, here, key, first, LANES);
+                        if ny == y {
+                            same |= 1 << (x - columns.start());
                         }
+                        gather(first, same);
+                        continue;
+                    }
+                    let last = ny * w + columns.end();
+                    while first <= last {
+                        let lanes = (last - first + 1).min(LANES);
+                        let mut same = pixels.same_surfaces(self, here, key, first, lanes);
+                        if (first..first + lanes).contains(&i) {
+                            same |= 1 << (i - first);
+                        }
+                        gather(first, same);
+                        first += lanes;
                     }
                 }
-                *pixel = albedo[i] * light / count as f32;
+                *pixel = albedo[i] * Vec3::from(light) / count as f32;
                 if emission[i] != Vec3::ZERO {
                     *pixel += emission[i];
                 }
@@ -178,9 +189,266 @@ impl DiscontinuityFilter {
     }
 }
 
+/// Neighbours judged at once.
+const LANES: usize = 4;
+
+/// The key of a pixel that takes no part: no surface, or an albedo too dark to divide
+/// by. A usable pixel whose shader id is this value too is still told apart, by
+/// [`Pixels::usable`].
+const NOT_USABLE: u32 = u32::MAX;
+
+/// The filter's per-pixel inputs, computed once per pixel rather than once per window
+/// that holds it (N² times), its surfaces one array per value so that four neighbours'
+/// load as one register each. Every array is padded by [`LANES`] so that a group of
+/// four starting at any pixel can be read whole.
+struct Pixels {
+    /// Received light: radiance less emission, divided by albedo (in SSE registers:
+    /// the adds are the same per channel, one instruction instead of three).
+    lights: Vec<Vec3A>,
+    /// Shader id where the pixel takes part, [`NOT_USABLE`] where not.
+    keys: Vec<u32>,
+    /// Whether the pixel takes part (for the shader id equal to [`NOT_USABLE`]).
+    usable: Vec<bool>,
+    normal: [Vec<f32>; 3],
+    position: [Vec<f32>; 3],
+}
+
+impl Pixels {
+    fn new(image: &GuidedImage) -> Self {
+        const DARKEST: f32 = 1e-4;
+        /// Pixels per parallel job of the one pass that fills every array.
+        const CHUNK: usize = 4096;
+        let len = image.radiance.len() + LANES;
+        let mut pixels = Self {
+            lights: vec![Vec3A::ZERO; len],
+            keys: vec![NOT_USABLE; len],
+            usable: vec![false; len],
+            normal: std::array::from_fn(|_| vec![0.0; len]),
+            position: std::array::from_fn(|_| vec![0.0; len]),
+        };
+        let Self {
+            lights,
+            keys,
+            usable,
+            normal: [nx, ny, nz],
+            position: [px, py, pz],
+        } = &mut pixels;
+        (
+            lights.par_chunks_mut(CHUNK),
+            keys.par_chunks_mut(CHUNK),
+            usable.par_chunks_mut(CHUNK),
+            nx.par_chunks_mut(CHUNK),
+            ny.par_chunks_mut(CHUNK),
+            nz.par_chunks_mut(CHUNK),
+            px.par_chunks_mut(CHUNK),
+            py.par_chunks_mut(CHUNK),
+            pz.par_chunks_mut(CHUNK),
+        )
+            .into_par_iter()
+            .enumerate()
+            .for_each(|(chunk, (lights, keys, usable, nx, ny, nz, px, py, pz))| {
+                let start = chunk * CHUNK;
+                let end = (start + CHUNK).min(image.radiance.len());
+                for (k, i) in (start..end).enumerate() {
+                    let (r, a, e, s) = (
+                        image.radiance[i],
+                        image.albedo[i],
+                        image.emission[i],
+                        &image.surfaces[i],
+                    );
+                    // Emission comes off before dividing and goes back on after; where
+                    // the film's mean and this frame's emission disagree (emissive edges)
+                    // the received light is kept from going negative.
+                    let received = if e == Vec3::ZERO {
+                        r
+                    } else {
+                        (r - e).max(Vec3::ZERO)
+                    };
+                    lights[k] = Vec3A::from(received / a);
+                    usable[k] = s.is_surface() && a.min_element() > DARKEST;
+                    keys[k] = if usable[k] { s.shader } else { NOT_USABLE };
+                    [nx[k], ny[k], nz[k]] = s.normal.to_array();
+                    [px[k], py[k], pz[k]] = s.position.to_array();
+                }
+            });
+        pixels
+    }
+
+    /// Bit `l` set when pixel `first + l` (of the first `lanes`) is usable and on the
+    /// same surface as `here` (whose key is `key`), as
+    /// [`DiscontinuityFilter::same_surface`] judges.
+    #[inline(always)]
+    fn same_surfaces(
+        &self,
+        filter: &DiscontinuityFilter,
+        here: &SurfaceGuide,
+        key: u32,
+        first: usize,
+        lanes: usize,
+    ) -> u32 {
+        let mut candidates = UVec4::from_slice(&self.keys[first..first + LANES])
+            .cmpeq(UVec4::splat(key))
+            .bitmask();
+        if key == NOT_USABLE {
+            for lane in 0..LANES {
+                candidates &= !(u32::from(!self.usable[first + lane]) << lane);
+            }
+        }
+        candidates &= (1 << lanes) - 1;
+        if candidates == 0 {
+            return 0;
+        }
+        let load = |values: &[f32]| Vec4::from_slice(&values[first..first + LANES]);
+        let [nx, ny, nz] = self.normal.each_ref().map(|v| load(v));
+        let [px, py, pz] = self.position.each_ref().map(|v| load(v));
+        let (a, p) = (here.normal, here.position);
+        // `a.normal.dot(b.normal)` and `a.normal.dot(b.position - a.position)` as glam's
+        // scalar `Vec3::dot` computes them: (x·x + y·y) + z·z.
+        let facing = Vec4::splat(a.x) * nx + Vec4::splat(a.y) * ny + Vec4::splat(a.z) * nz;
+        let off_plane = Vec4::splat(a.x) * (px - Vec4::splat(p.x))
+            + Vec4::splat(a.y) * (py - Vec4::splat(p.y))
+            + Vec4::splat(a.z) * (pz - Vec4::splat(p.z));
+        let close = facing.cmpge(Vec4::splat(filter.normal_cosine))
+            & off_plane
+                .abs()
+                .cmple(Vec4::splat(filter.depth_tolerance * here.depth));
+        candidates & close.bitmask()
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::test_random::uniform;
+
+    /// The filter neighbour by neighbour, as it was before the four-lane judging: the
+    /// oracle the fast filter must equal to the bit.
+    fn apply_one_by_one(filter: &DiscontinuityFilter, image: &GuidedImage) -> Vec<Vec3> {
+        const DARKEST: f32 = 1e-4;
+        let (w, h) = (image.width as usize, image.height as usize);
+        let n = filter.window as isize;
+        let (lo, hi) = (-(n / 2), n - 1 - n / 2);
+        let mut out = image.radiance.to_vec();
+        if n <= 1 || w == 0 || h == 0 {
+            return out;
+        }
+        let lights: Vec<Vec3> = (0..w * h)
+            .map(|i| {
+                let (r, e) = (image.radiance[i], image.emission[i]);
+                let received = if e == Vec3::ZERO {
+                    r
+                } else {
+                    (r - e).max(Vec3::ZERO)
+                };
+                received / image.albedo[i]
+            })
+            .collect();
+        let usable: Vec<bool> = (0..w * h)
+            .map(|i| image.surfaces[i].is_surface() && image.albedo[i].min_element() > DARKEST)
+            .collect();
+        for y in 0..h {
+            for x in 0..w {
+                let i = y * w + x;
+                if !usable[i] {
+                    continue;
+                }
+                let (mut light, mut count) = (Vec3::ZERO, 0u32);
+                for ny in y.saturating_add_signed(lo)..=y.saturating_add_signed(hi).min(h - 1) {
+                    for nx in x.saturating_add_signed(lo)..=x.saturating_add_signed(hi).min(w - 1) {
+                        let j = ny * w + nx;
+                        if j == i
+                            || (usable[j]
+                                && filter.same_surface(&image.surfaces[i], &image.surfaces[j]))
+                        {
+                            light += lights[j];
+                            count += 1;
+                        }
+                    }
+                }
+                out[i] = image.albedo[i] * light / count as f32;
+                if image.emission[i] != Vec3::ZERO {
+                    out[i] += image.emission[i];
+                }
+            }
+        }
+        out
+    }
+
+    #[test]
+    fn four_neighbours_at_once_give_the_one_by_one_filter_to_the_bit() {
+        let mut state = 0x5eed_f11e_u64;
+        let mut random = move || uniform(&mut state);
+        for (width, height) in [(1, 1), (2, 3), (5, 1), (7, 5), (33, 17), (64, 48), (3, 40)] {
+            let len = width * height;
+            let mut surfaces = Vec::with_capacity(len);
+            let (mut radiance, mut albedo, mut emission) = (vec![], vec![], vec![]);
+            for _ in 0..len {
+                let kind = random();
+                let surface = if kind < 0.1 {
+                    SurfaceGuide::NONE
+                } else {
+                    let shader = [0, 1, 2, u32::MAX][(random() * 4.0) as usize];
+                    let normal = match (random() * 10.0) as u32 {
+                        0 => Vec3::ZERO,
+                        1 => Vec3::NAN,
+                        k => {
+                            let base = [Vec3::Z, Vec3::Y, Vec3::new(0.6, 0.8, 0.0)][k as usize % 3];
+                            (base + 0.3 * Vec3::new(random(), random(), random()) - 0.15)
+                                .normalize()
+                        }
+                    };
+                    let depth = 1.0 + 9.0 * random();
+                    let position = Vec3::new(random(), random(), -depth)
+                        * [1.0, 1.0, 1.01][(random() * 3.0) as usize];
+                    SurfaceGuide {
+                        depth,
+                        position,
+                        normal,
+                        shader,
+                    }
+                };
+                surfaces.push(surface);
+                let texture = Vec3::new(random(), random(), random());
+                albedo.push(if random() < 0.05 {
+                    texture * 1e-5
+                } else {
+                    texture
+                });
+                radiance.push(texture * 3.0 * random());
+                emission.push(if random() < 0.1 {
+                    Vec3::splat(random())
+                } else {
+                    Vec3::ZERO
+                });
+            }
+            let image = GuidedImage {
+                width: width as u32,
+                height: height as u32,
+                radiance: &radiance,
+                albedo: &albedo,
+                emission: &emission,
+                surfaces: &surfaces,
+            };
+            for window in 1..=6 {
+                let filter = DiscontinuityFilter {
+                    window,
+                    depth_tolerance: 0.02 + 0.2 * random(),
+                    normal_cosine: 0.5 + 0.5 * random(),
+                };
+                let bits = |pixels: Vec<Vec3>| -> Vec<[u32; 3]> {
+                    pixels
+                        .iter()
+                        .map(|p| p.to_array().map(f32::to_bits))
+                        .collect()
+                };
+                assert_eq!(
+                    bits(filter.apply(&image)),
+                    bits(apply_one_by_one(&filter, &image)),
+                    "{width}×{height}, window {window}"
+                );
+            }
+        }
+    }
 
     /// A point of the plane z = −depth facing a camera at the origin.
     fn plane(x: f32, y: f32, depth: f32, shader: u32) -> SurfaceGuide {
