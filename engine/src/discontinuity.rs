@@ -209,7 +209,9 @@ struct Pixels {
     keys: Vec<u32>,
     /// Whether the pixel takes part (for the shader id equal to [`NOT_USABLE`]).
     usable: Vec<bool>,
+    /// The surface normals' x, y and z.
     normal: [Vec<f32>; 3],
+    /// The hit points' x, y and z.
     position: [Vec<f32>; 3],
 }
 
@@ -276,7 +278,7 @@ impl Pixels {
 
     /// Bit `l` set when pixel `first + l` (of the first `lanes`) is usable and on the
     /// same surface as `here` (whose key is `key`), as
-    /// [`DiscontinuityFilter::same_surface`] judges.
+    /// the one-by-one rule (`same_surface`, which the tests keep as the oracle) judges.
     #[inline(always)]
     fn same_surfaces(
         &self,
