@@ -3,6 +3,7 @@
 //! distance from the camera; and the small fixed-capacity list of the nearest holes a
 //! closest-hit query collects to apply it exactly in distance order.
 
+use arrayvec::ArrayVec;
 use crate::tlas::Candidate;
 use bevy_ecs::component::Component;
 
@@ -102,11 +103,11 @@ impl TransparencyCurve {
 /// for), each keyed by its ray parameter. Farther holes are dropped once it is full. A
 /// hole at the same distance as a kept one (within 2⁻²⁰ relative) is the same segment —
 /// the shared edge of two triangles, or coplanar copies — and is not kept twice.
-#[derive(Clone, Copy, Debug)]
+#[derive(Clone, Debug)]
 pub struct NearestHoles<T: Copy + Default, const N: usize> {
-    len: usize,
     capacity: usize,
-    items: [(f32, T); N],
+    // Left uninitialised past its length: a shadow ray's list was a 256-byte fill.
+    items: ArrayVec<(f32, T), N>,
 }
 
 impl<T: Copy + Default, const N: usize> NearestHoles<T, N> {
@@ -114,17 +115,15 @@ impl<T: Copy + Default, const N: usize> NearestHoles<T, N> {
     #[inline]
     pub fn new(capacity: usize) -> Self {
         Self {
-            len: 0,
             capacity: capacity.min(N),
-            items: [(0.0, T::default()); N],
+            items: ArrayVec::new(),
         }
     }
 
-    /// Empties the list for another ray, now keeping at most `capacity` (≤ `N`) holes;
-    /// cheaper than [`new`](Self::new), which writes all `N` entries.
+    /// Empties the list for another ray, now keeping at most `capacity` (≤ `N`) holes.
     #[inline]
     pub fn reset(&mut self, capacity: usize) {
-        self.len = 0;
+        self.items.clear();
         self.capacity = capacity.min(N);
     }
 
@@ -133,18 +132,15 @@ impl<T: Copy + Default, const N: usize> NearestHoles<T, N> {
     #[inline]
     pub fn insert(&mut self, t: f32, item: T) {
         let tolerance = t.abs() * SAME_SEGMENT;
-        if self.items[..self.len]
-            .iter()
-            .any(|(ti, _)| (ti - t).abs() <= tolerance)
-        {
+        if self.items.iter().any(|(ti, _)| (ti - t).abs() <= tolerance) {
             return;
         }
-        if self.len < self.capacity {
-            self.items[self.len] = (t, item);
-            self.len += 1;
+        if self.items.len() < self.capacity {
+            self.items.push((t, item));
             return;
         }
-        let Some((farthest, &(t_far, _))) = self.items[..self.len]
+        let Some((farthest, &(t_far, _))) = self
+            .items
             .iter()
             .enumerate()
             .max_by(|a, b| a.1.0.total_cmp(&b.1.0))
@@ -159,16 +155,13 @@ impl<T: Copy + Default, const N: usize> NearestHoles<T, N> {
     /// Kept holes strictly nearer than `t`.
     #[inline]
     pub fn count_before(&self, t: f32) -> usize {
-        self.items[..self.len]
-            .iter()
-            .filter(|(ti, _)| *ti < t)
-            .count()
+        self.items.iter().filter(|(ti, _)| *ti < t).count()
     }
 
     /// Kept holes strictly nearer than `t`, nearest first (ties keep insertion order).
     #[inline]
     pub fn sorted_before(&mut self, t: f32) -> &[(f32, T)] {
-        let kept = &mut self.items[..self.len];
+        let kept = self.items.as_mut_slice();
         kept.sort_by(|a, b| a.0.total_cmp(&b.0));
         let n = kept.partition_point(|(ti, _)| *ti < t);
         &kept[..n]
@@ -177,13 +170,13 @@ impl<T: Copy + Default, const N: usize> NearestHoles<T, N> {
     /// Number of holes kept.
     #[inline]
     pub fn len(&self) -> usize {
-        self.len
+        self.items.len()
     }
 
     /// True when no hole was kept.
     #[inline]
     pub fn is_empty(&self) -> bool {
-        self.len == 0
+        self.items.is_empty()
     }
 }
 
