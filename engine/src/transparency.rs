@@ -3,8 +3,8 @@
 //! distance from the camera; and the small fixed-capacity list of the nearest holes a
 //! closest-hit query collects to apply it exactly in distance order.
 
-use arrayvec::ArrayVec;
 use crate::tlas::Candidate;
+use arrayvec::ArrayVec;
 use bevy_ecs::component::Component;
 
 /// The largest transparency allowance a curve may set (the hole list holds one more).
