@@ -197,8 +197,11 @@ fn sky_map(scene: &SceneBuild, sun: Vec3) -> Vec<Vec3> {
             texels.push(l);
         }
     }
+    // A scene without sky light still needs a map with some light in it: the harness
+    // divides by its total. Then the sun carries all of it.
+    let sun_power = if sky_power > 0.0 { sky_power } else { 1.0 };
     let sun_radiance = if sun_area > 0.0 {
-        (sky_power / sun_area) as f32
+        (sun_power / sun_area) as f32
     } else {
         0.0
     };
@@ -227,6 +230,7 @@ fn main() -> Result<()> {
             s.id.0
         );
     }
+    // Without a sun the disc stands at the zenith.
     let sun = scene.sun.map_or(Vec3::Y, |s| s.direction.normalize());
     let atlas = Atlas::new(&scene);
     let file = std::fs::File::create(out).with_context(|| format!("creating {out}"))?;
