@@ -54,9 +54,7 @@ struct Atlas {
 impl Atlas {
     fn new(scene: &SceneBuild) -> Self {
         let masked: Vec<usize> = (0..scene.shaders.len())
-            .filter(|&s| {
-                scene.shaders[s].alpha_cutoff.is_some() && scene.shaders[s].texture.is_some()
-            })
+            .filter(|&s| scene.shaders[s].is_alpha_masked())
             .collect();
         let columns = ((masked.len() as f32).sqrt().ceil() as u32).max(1);
         let rows = (masked.len() as u32).div_ceil(columns).max(1);
@@ -110,8 +108,8 @@ fn row_major(a: &Affine3A) -> [f32; 12] {
 }
 
 /// Meshes split into one primitive per shader (the harness's materials: 0 leaf with the
-/// alpha test, 1 bark, 2 ground); the terrain's vertices in world space, as the harness
-/// adds it to the top level without a transform.
+/// alpha test, 1 bark, 2 ground). The terrain is flagged: the harness adds it to the top
+/// level as it is, which is where Sylva places it (at the origin, unmoved).
 fn write_meshes(raw: &mut Raw, scene: &SceneBuild, atlas: &Atlas) -> Result<usize> {
     let terrain = scene.terrain.map(|t| t.0 as usize);
     raw.u32(scene.library.geometries.len() as u32)?;
@@ -237,10 +235,19 @@ fn main() -> Result<()> {
     let mut raw = Raw(BufWriter::new(file));
     raw.0.write_all(b"MFRAW002")?;
     let triangles = write_meshes(&mut raw, &scene, &atlas)?;
-    raw.u32(scene.plants.len() as u32)?;
-    for plant in &scene.plants {
-        raw.u32(plant.geometry.0)?;
-        raw.f32s(row_major(&plant.transform.to_affine()))?;
+    // The plants, then the terrain's own entry as the anchor generator writes it (the
+    // harness skips it when it places instances, and counts it out of its total).
+    let terrain = scene.terrain.map(|t| (t.0, Affine3A::IDENTITY));
+    let placements: Vec<(u32, Affine3A)> = scene
+        .plants
+        .iter()
+        .map(|p| (p.geometry.0, p.transform.to_affine()))
+        .chain(terrain)
+        .collect();
+    raw.u32(placements.len() as u32)?;
+    for (geometry, transform) in &placements {
+        raw.u32(*geometry)?;
+        raw.f32s(row_major(transform))?;
     }
     raw.u32(atlas.columns * CELL)?;
     raw.u32(atlas.rows * CELL)?;
@@ -282,7 +289,7 @@ fn main() -> Result<()> {
     raw.0.write_all(&[60, 120, 40])?;
     raw.0.flush().with_context(|| format!("writing {out}"))?;
     println!(
-        "{out}: {} meshes, {triangles} unique triangles, {} instances, {} masked shaders in a {}x{} atlas, camera {width}x{height} at {:.2}° across",
+        "{out}: {} meshes, {triangles} unique triangles, {} plants, {} masked shaders in a {}x{} atlas, camera {width}x{height} at {:.2}° across",
         scene.library.geometries.len(),
         scene.plants.len(),
         atlas.cell_of.iter().flatten().count(),
