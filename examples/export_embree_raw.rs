@@ -15,6 +15,7 @@ use glam::{Affine3A, Vec2, Vec3, Vec3A};
 use std::collections::{BTreeMap, HashMap};
 use std::f64::consts::PI;
 use std::io::{BufWriter, Write};
+use sylva::engine::environment::uv_to_direction;
 use sylva::prelude::build_scene;
 use sylva::scenes::SceneBuild;
 
@@ -180,11 +181,11 @@ fn sky_map(scene: &SceneBuild, sun: Vec3) -> Vec<Vec3> {
         let theta = PI * (f64::from(y) + 0.5) / f64::from(height);
         let area = (2.0 * PI / f64::from(width)) * (PI / f64::from(height)) * theta.sin();
         for x in 0..width {
-            let phi = 2.0 * PI * (f64::from(x) + 0.5) / f64::from(width);
-            let d = Vec3::new(
-                (phi.sin() * theta.sin()) as f32,
-                theta.cos() as f32,
-                (-phi.cos() * theta.sin()) as f32,
+            // The harness's texel direction, (sin φ sin θ, cos θ, −cos φ sin θ) at
+            // φ = 2π (x + ½) / width, is Sylva's lat-long mapping at the texel's centre.
+            let d = uv_to_direction(
+                (x as f32 + 0.5) / width as f32,
+                (y as f32 + 0.5) / height as f32,
             );
             let l = radiance(d);
             sky_power += f64::from(0.2126 * l.x + 0.7152 * l.y + 0.0722 * l.z) * area;
