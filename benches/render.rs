@@ -76,7 +76,7 @@ fn rays(c: &mut Criterion) {
         radiance: &radiance,
         albedo: &albedo,
         emission: &emission,
-        surfaces: &frame.surfaces,
+        surfaces: &frame.pixels.surfaces,
     };
     let filter = DiscontinuityFilter::for_pattern(4);
     let mut group = c.benchmark_group("meadow_display_640x480");

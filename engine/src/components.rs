@@ -1,7 +1,7 @@
 //! ECS components of plants: where they stand and what they are. Cameras, films,
 //! shaders and lights define theirs in their own modules.
 
-use crate::geometry::GeometryId;
+use crate::accel::geometry::GeometryId;
 use bevy_ecs::component::Component;
 use glam::{Affine3A, Quat, Vec3};
 

@@ -6,35 +6,26 @@
 //! textures and shaders, lights, hash-based sampling, cameras, films and the tile render
 //! kernel. The ECS components live here too, so every crate agrees on them.
 
-pub mod bvh;
-pub mod camera;
-pub mod camera_path;
+pub mod accel;
 pub mod components;
-pub mod discontinuity;
-pub mod environment;
 pub mod film;
-pub mod fingerprint;
-pub mod geometry;
-pub mod heightfield;
-pub mod interleave;
 pub mod light;
-pub mod math;
-pub mod mesh;
-pub mod metrics;
-pub mod node_animation;
-pub mod occluders;
-pub mod opacity;
-pub mod presplit;
+pub mod material;
+pub mod motion;
 pub mod render;
-pub mod sampling;
-pub mod shading;
-pub mod support;
-pub mod sway;
-#[cfg(test)]
-mod test_random;
-pub mod tlas;
-pub mod transparency;
-pub mod triangle;
+pub mod util;
+
+// The modules' paths from before the engine had folders, kept for the other crates.
+pub use accel::{
+    bvh, geometry, heightfield, instance_bounds as support, mesh, occluders, presplit, tlas,
+    triangle,
+};
+pub use film::{discontinuity, metrics};
+pub use light::{environment, interleave};
+pub use material::{opacity, shading, transparency};
+pub use motion::{camera_path, node_animation, sway};
+pub use render::camera;
+pub use util::{fingerprint, math, sampling};
 
 pub use bvh::{BuildParams, Bvh, TraversalStats};
 pub use camera::{Camera, CameraView, Lens};

@@ -269,8 +269,8 @@ fn a_sun_up_to_a_million_times_brighter_makes_no_fireflies_on_an_open_plane() {
                 let shading = SampleShading::plain(1);
                 let value = Vec3::from(scene.radiance(&ray, &key, &shading, &mut stats));
                 let mut frame = FrameBuffer::new(1, 1, k);
-                frame.sums[0] = value;
-                frame.counts[0] = 1;
+                frame.pixels.sums[0] = value;
+                frame.pixels.counts[0] = 1;
                 film.accumulate(&frame);
             }
             film

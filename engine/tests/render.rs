@@ -169,9 +169,9 @@ fn tile_order_and_thread_count_do_not_change_a_bit() {
     // The image has content, and another frame index draws other samples.
     let mean = frames[0].mean();
     assert!(mean.iter().any(|p| *p != mean[0]));
-    assert!(frames[0].counts.iter().all(|&c| c == 2) && frames[0].rejected == 0);
+    assert!(frames[0].pixels.counts.iter().all(|&c| c == 2) && frames[0].rejected == 0);
     let other = render_frame(&scene, &view, &params, 6, &|_| {});
-    assert_ne!(other.sums, frames[0].sums);
+    assert_ne!(other.pixels.sums, frames[0].pixels.sums);
 }
 
 /// One frame of a scene lit by `sun` alone (no sky: no noise), seen from `eye` towards
@@ -264,10 +264,10 @@ fn injected_nan_samples_are_counted_and_never_reach_the_film() {
     let mut film = Film::new(64, 48);
     for frame_index in 0..2 {
         let frame = render_frame(&scene, &view, &params, frame_index, &|_| {});
-        let dropped: u64 = frame.counts.iter().map(|&c| u64::from(3 - c)).sum();
+        let dropped: u64 = frame.pixels.counts.iter().map(|&c| u64::from(3 - c)).sum();
         assert_eq!(frame.rejected, dropped);
         assert!(frame.rejected > 50, "{} samples rejected", frame.rejected);
-        assert!(frame.sums.iter().all(|s| s.is_finite()));
+        assert!(frame.pixels.sums.iter().all(|s| s.is_finite()));
         film.accumulate(&frame);
     }
     assert!(film.rejected_samples() > 100);
@@ -326,7 +326,7 @@ fn the_discontinuity_filter_keeps_light_on_its_side_of_a_depth_edge() {
             radiance: &raw,
             albedo: &albedo,
             emission: &frame.mean_emission(),
-            surfaces: &frame.surfaces,
+            surfaces: &frame.pixels.surfaces,
         })
     };
     let filtered = filter(0.05);

@@ -618,7 +618,7 @@ pub fn filter_display(
                     radiance: &means,
                     albedo: &frame.mean_albedo(),
                     emission: &frame.mean_emission(),
-                    surfaces: &frame.surfaces,
+                    surfaces: &frame.pixels.surfaces,
                 },
             )
         });

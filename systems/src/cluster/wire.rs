@@ -4,8 +4,8 @@
 
 use glam::Vec3;
 use sylva_engine::bvh::TraversalStats;
+use sylva_engine::film::{PixelSums, SurfaceGuide};
 use sylva_engine::film::{Tile, TileResult};
-use sylva_engine::render::SurfaceGuide;
 
 use super::LiveStep;
 
@@ -291,15 +291,16 @@ impl Writer {
         for v in [t.x, t.y, t.width, t.height] {
             self.u32(v);
         }
-        let pixels = result.sums.len();
+        let p = &result.pixels;
+        let pixels = p.len();
         self.u32(pixels as u32);
         self.0.reserve(pixels * PIXEL_BYTES + 8 + 11 * 8);
         for i in 0..pixels {
-            self.vec3(result.sums[i]);
-            self.u32(result.counts[i]);
-            self.vec3(result.albedo_sums[i]);
-            self.vec3(result.emission_sums[i]);
-            let s = result.surfaces[i];
+            self.vec3(p.sums[i]);
+            self.u32(p.counts[i]);
+            self.vec3(p.albedo_sums[i]);
+            self.vec3(p.emission_sums[i]);
+            let s = p.surfaces[i];
             self.f32(s.depth);
             self.vec3(s.position);
             self.vec3(s.normal);
@@ -380,25 +381,22 @@ impl Reader<'_> {
         }
         let mut result = TileResult {
             tile,
-            sums: Vec::with_capacity(pixels),
-            counts: Vec::with_capacity(pixels),
-            albedo_sums: Vec::with_capacity(pixels),
-            emission_sums: Vec::with_capacity(pixels),
-            surfaces: Vec::with_capacity(pixels),
+            pixels: PixelSums::with_capacity(pixels),
             rejected: 0,
             stats: TraversalStats::default(),
         };
         for _ in 0..pixels {
-            result.sums.push(self.vec3()?);
-            result.counts.push(self.u32()?);
-            result.albedo_sums.push(self.vec3()?);
-            result.emission_sums.push(self.vec3()?);
-            result.surfaces.push(SurfaceGuide {
+            let (sum, count, albedo_sum, emission_sum) =
+                (self.vec3()?, self.u32()?, self.vec3()?, self.vec3()?);
+            let surface = SurfaceGuide {
                 depth: self.f32()?,
                 position: self.vec3()?,
                 normal: self.vec3()?,
                 shader: self.u32()?,
-            });
+            };
+            result
+                .pixels
+                .push(sum, count, albedo_sum, emission_sum, surface);
         }
         result.rejected = self.u64()?;
         let s = &mut result.stats;
@@ -436,24 +434,26 @@ mod tests {
         let odd = [f32::NAN, -0.0, f32::INFINITY, 1e-42, 3.5, -7.25];
         TileResult {
             tile,
-            sums: (0..n).map(|i| Vec3::new(odd[i], i as f32, 0.1)).collect(),
-            counts: (0..n as u32).collect(),
-            albedo_sums: (0..n).map(|i| Vec3::splat(i as f32 * 0.3)).collect(),
-            emission_sums: (0..n).map(|i| Vec3::new(0.0, odd[5 - i], 2.0)).collect(),
-            surfaces: (0..n)
-                .map(|i| {
-                    if i == 2 {
-                        SurfaceGuide::NONE
-                    } else {
-                        SurfaceGuide {
-                            depth: i as f32,
-                            position: Vec3::new(1.0, 2.0, odd[i]),
-                            normal: Vec3::Y,
-                            shader: i as u32,
+            pixels: PixelSums {
+                sums: (0..n).map(|i| Vec3::new(odd[i], i as f32, 0.1)).collect(),
+                counts: (0..n as u32).collect(),
+                albedo_sums: (0..n).map(|i| Vec3::splat(i as f32 * 0.3)).collect(),
+                emission_sums: (0..n).map(|i| Vec3::new(0.0, odd[5 - i], 2.0)).collect(),
+                surfaces: (0..n)
+                    .map(|i| {
+                        if i == 2 {
+                            SurfaceGuide::NONE
+                        } else {
+                            SurfaceGuide {
+                                depth: i as f32,
+                                position: Vec3::new(1.0, 2.0, odd[i]),
+                                normal: Vec3::Y,
+                                shader: i as u32,
+                            }
                         }
-                    }
-                })
-                .collect(),
+                    })
+                    .collect(),
+            },
             rejected: 7,
             stats: TraversalStats {
                 closest_rays: 1,
@@ -489,11 +489,11 @@ mod tests {
                 .collect()
         };
         a.tile == b.tile
-            && bits(&a.sums) == bits(&b.sums)
-            && a.counts == b.counts
-            && bits(&a.albedo_sums) == bits(&b.albedo_sums)
-            && bits(&a.emission_sums) == bits(&b.emission_sums)
-            && surface_bits(&a.surfaces) == surface_bits(&b.surfaces)
+            && bits(&a.pixels.sums) == bits(&b.pixels.sums)
+            && a.pixels.counts == b.pixels.counts
+            && bits(&a.pixels.albedo_sums) == bits(&b.pixels.albedo_sums)
+            && bits(&a.pixels.emission_sums) == bits(&b.pixels.emission_sums)
+            && surface_bits(&a.pixels.surfaces) == surface_bits(&b.pixels.surfaces)
             && a.rejected == b.rejected
             && a.stats == b.stats
     }

@@ -1,0 +1,85 @@
+//! What a frame is rendered with: the planning stages' decisions for a camera
+//! ([`FramePlan`]), the per-frame sampling settings ([`RenderParams`]) and how one
+//! camera sample is shaded ([`SampleShading`]).
+
+use crate::light::interleave::LightSubsets;
+use crate::material::transparency::TransparencyCurve;
+use bevy_ecs::component::Component;
+
+/// What the planning stages decided for a camera's frames: adaptive transparency (only
+/// when the scene has alpha masks) and light subsets (only when it has virtual lights).
+#[derive(Component, Clone, Copy, Debug, Default, PartialEq)]
+pub struct FramePlan {
+    /// The transparency curve in force, if any.
+    pub transparency: Option<TransparencyCurve>,
+    /// The light-subset assignment in force, if any.
+    pub light_subsets: Option<LightSubsets>,
+}
+
+/// Per-frame sampling settings.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct RenderParams {
+    /// Camera samples per pixel.
+    pub samples_per_pixel: u32,
+    /// Light samples (sky or virtual-light shadow rays) per camera hit.
+    pub light_samples: u32,
+    /// Seed of every random number.
+    pub seed: u64,
+    /// Tile edge in pixels.
+    pub tile_size: u32,
+    /// Adaptive transparency, off when `None`.
+    pub transparency: Option<TransparencyCurve>,
+    /// Interleaved light subsets, off when `None`.
+    pub light_subsets: Option<LightSubsets>,
+    /// Diffuse bounces of indirect light (0: direct light only).
+    pub bounces: u32,
+}
+
+impl Default for RenderParams {
+    fn default() -> Self {
+        Self {
+            samples_per_pixel: 1,
+            light_samples: 2,
+            seed: 0,
+            tile_size: 16,
+            transparency: None,
+            light_subsets: None,
+            bounces: 0,
+        }
+    }
+}
+
+impl RenderParams {
+    /// These settings with a plan's transparency curve and light subsets.
+    pub fn with_plan(self, plan: &FramePlan) -> Self {
+        Self {
+            transparency: plan.transparency,
+            light_subsets: plan.light_subsets,
+            ..self
+        }
+    }
+}
+
+/// How one camera sample is shaded.
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
+pub struct SampleShading {
+    /// Light samples (sky shadow rays) per hit.
+    pub light_samples: u32,
+    /// Diffuse bounces of indirect light after the first hit (0: direct light only).
+    pub bounces: u32,
+    /// Adaptive transparency, off when `None`.
+    pub transparency: Option<TransparencyCurve>,
+    /// The subset assignment and the subset this sample draws its lights from; all
+    /// lights when `None`.
+    pub light_subset: Option<(LightSubsets, u32)>,
+}
+
+impl SampleShading {
+    /// Exact shading with `light_samples` independent light samples per hit.
+    pub fn plain(light_samples: u32) -> Self {
+        Self {
+            light_samples,
+            ..Default::default()
+        }
+    }
+}
