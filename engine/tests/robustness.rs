@@ -5,7 +5,7 @@ mod common;
 
 use common::*;
 use glam::{Affine3A, Vec3A};
-use sylva_engine::bvh::simd::Portable;
+use sylva_engine::accel::kernel::Portable;
 use sylva_engine::bvh::{BuildParams, TraversalStats};
 use sylva_engine::geometry::{Geometry, GeometryId, GeometryLibrary};
 use sylva_engine::heightfield::Heightfield;

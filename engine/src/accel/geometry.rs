@@ -1,10 +1,10 @@
 //! Species geometry: each mesh with its bottom-level BVH, built once and shared by every
 //! instance, collected in the [`GeometryLibrary`].
 
-use crate::accel::bvh::simd::{NodeKernel, prefetch, with_node_kernel};
 use crate::accel::bvh::{BuildParams, Bvh, LeafVisit, PACKET, PADDING, TraversalStats, mask_bits};
 use crate::accel::heightfield::Heightfield;
 use crate::accel::instance_bounds::SupportTable;
+use crate::accel::kernel::{NodeKernel, prefetch, with_node_kernel};
 use crate::accel::mesh::{MeshError, TriangleMesh};
 use crate::accel::presplit::triangle_boxes;
 use crate::accel::triangle::{TriangleBlock, TriangleHit, WatertightRay};
@@ -166,7 +166,7 @@ impl Geometry {
         if self.bvh.bounds().is_empty() {
             return Aabb::EMPTY;
         }
-        crate::accel::bvh::simd::transformed_bounds(&self.support, transform)
+        crate::accel::kernel::transformed_bounds(&self.support, transform)
     }
 
     /// Closest hit with `0 < t < ray.t_max` that `accept(triangle, hit)` keeps.

@@ -201,7 +201,7 @@ impl SupportTable {
     /// A box holding every sampled point after `transform`: per axis, the translation
     /// plus the support at the matrix row and minus it at the negated row, each sum
     /// moved outward by more than its rounding (half an ulp of the sum). Inlined into
-    /// [`crate::accel::bvh::simd::transformed_bounds`], which compiles it for AVX2.
+    /// [`crate::accel::kernel::transformed_bounds`], which compiles it for AVX2.
     #[inline(always)]
     pub fn transformed_bounds(&self, transform: &Affine3A) -> Aabb {
         self.transformed_bounds_with(transform, cell_corners)

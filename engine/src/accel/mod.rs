@@ -7,6 +7,7 @@ pub mod bvh;
 pub mod geometry;
 pub mod heightfield;
 pub mod instance_bounds;
+pub mod kernel;
 pub mod mesh;
 pub mod occluders;
 pub mod presplit;

@@ -14,9 +14,9 @@
 //! The cache belongs to one tile's render and starts empty there, so its counters do
 //! not depend on which thread rendered which tile before.
 
-use crate::accel::bvh::simd::NodeKernel;
 use crate::accel::bvh::{NodeRay, WIDTH, WideNode};
 use crate::accel::geometry::{GeometryId, GeometryLibrary};
+use crate::accel::kernel::NodeKernel;
 use crate::accel::tlas::{Candidate, InstanceTriangle, Occluder, TopLevel};
 use crate::accel::triangle::{TriangleBlock, WatertightRay};
 use crate::util::math::Ray;

@@ -1,9 +1,9 @@
 //! The top-level BVH over instances. Each instance is a transform and a geometry id;
 //! traversal moves the ray into the instance's object space and descends its BLAS.
 
-use crate::accel::bvh::simd::{NodeKernel, affine_from_columns, prefetch, with_node_kernel};
 use crate::accel::bvh::{BuildParams, BuildScratch, Bvh, PACKET, TraversalStats, mask_bits};
 use crate::accel::geometry::{BlockRef, Geometry, GeometryId, GeometryLibrary};
+use crate::accel::kernel::{NodeKernel, affine_from_columns, prefetch, with_node_kernel};
 use crate::accel::triangle::TriangleHit;
 use crate::util::math::{Aabb, Ray};
 use glam::{Affine3A, Vec3A};

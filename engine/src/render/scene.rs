@@ -4,8 +4,8 @@
 //! transparency's holes turned opaque.
 
 use crate::accel::bvh::PACKET;
-use crate::accel::bvh::simd::{NodeKernel, with_node_kernel};
 use crate::accel::geometry::GeometryLibrary;
+use crate::accel::kernel::{NodeKernel, with_node_kernel};
 use crate::accel::occluders::OccluderCache;
 use crate::accel::tlas::{Candidate, Hit, InstanceTriangle, TopLevel};
 use crate::light::LightSet;

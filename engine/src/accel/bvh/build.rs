@@ -1256,7 +1256,7 @@ fn align_leaves(wide: &mut [WideNode], refs: &[PrimRef], block: usize, aligned: 
 #[inline(always)]
 fn prefetch_ahead<T>(items: &[T], i: usize) {
     if let Some(ahead) = items.get(i + 32) {
-        super::simd::prefetch(ahead);
+        crate::accel::kernel::prefetch(ahead);
     }
 }
 

@@ -1,15 +1,23 @@
 //! Bounding volume hierarchies: one 8-wide BVH type serves both levels, over triangles
 //! (the per-species BLAS) and over instances (the TLAS). It knows nothing of what its
 //! primitives are: building takes their boxes, traversal takes a closure that tests a
-//! primitive slot (obvhs-style `ray_traverse` / `ray_traverse_anyhit`).
+//! primitive slot (obvhs-style `ray_traverse` / `ray_traverse_anyhit`). The box tests
+//! run on the ISA kernels of [`kernel`](crate::accel::kernel).
+//!
+//! Files: `build` (binned SAH and grid cells into wide nodes), `wide` (the node),
+//! `ray` (a walk's inputs), `traverse` and `traverse_packet` (the loops, generic over the
+//! kernel), `query` (entry points that pick the kernel), `packet` (a packet's bound),
+//! `refit`, `validate`.
 
 use crate::util::fingerprint::Fingerprint;
 
 mod build;
 mod packet;
+mod query;
+mod ray;
 mod refit;
-pub mod simd;
 mod traverse;
+mod traverse_packet;
 mod validate;
 mod wide;
 
@@ -17,15 +25,17 @@ pub use crate::util::stats::TraversalStats;
 pub use build::{BOTTOM_GRID_FROM, BuildParams, BuildScratch, GRID_FROM};
 pub(crate) use packet::mask_bits;
 pub use packet::{PACKET, PacketBound};
+pub(crate) use ray::{FAR_SCALE, entry_limit};
+pub use ray::{LeafVisit, NodeRay};
 pub use refit::RefitError;
-pub use traverse::{LeafVisit, NodeRay};
 pub use validate::BvhReport;
 pub use wide::{WIDTH, WideNode};
 
 /// The `prim_indices` entry of a slot that only pads a leaf to a whole block.
 pub const PADDING: u32 = u32::MAX;
 
-/// Traversal stack capacity; [`build`](Bvh::build) bounds the depth below it.
+/// The deepest tree [`build`](Bvh::build) makes (median splits take over before it);
+/// traversal stacks hold 24 entries inline and spill to the heap beyond them.
 pub const MAX_DEPTH: usize = 96;
 
 /// A BVH of [`WIDTH`] children per node, built top-down by binned SAH splits: nodes

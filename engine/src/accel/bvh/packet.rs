@@ -6,10 +6,7 @@
 //! top level hands the rays that enter an instance together to its bottom level as a
 //! packet again, when they are narrow enough there.
 
-use super::simd::{NodeKernel, prefetch_children, prefetch_node, with_node_kernel};
-use super::traverse::{FAR_SCALE, NodeRay, Stack, entry_limit, insert_farthest_first};
-use super::{Bvh, TraversalStats, WIDTH, WideNode};
-use crate::util::math::Ray;
+use super::{FAR_SCALE, NodeRay, WIDTH, WideNode};
 use glam::Vec4;
 
 /// Rays a packet holds at most.
@@ -31,28 +28,21 @@ pub(crate) fn mask_bits(mut mask: u32) -> impl Iterator<Item = usize> {
 /// rays; every ray's reciprocal has one sign per axis (no ray runs parallel to an axis).
 #[derive(Clone, Copy, Debug)]
 pub struct PacketBound {
-    pub(super) origin_lo: [f32; 3],
+    pub(crate) origin_lo: [f32; 3],
     origin_hi: [f32; 3],
-    pub(super) inv_lo: [f32; 3],
-    pub(super) inv_hi: [f32; 3],
+    pub(crate) inv_lo: [f32; 3],
+    pub(crate) inv_hi: [f32; 3],
     /// All rays start at the same point (a pinhole camera's): each plane's distance
     /// from it is one value, and only the reciprocals' interval remains.
-    pub(super) common_origin: bool,
+    pub(crate) common_origin: bool,
     /// Per axis, whether the rays meet a box's upper plane first (all alike).
-    pub(super) near_is_max: [bool; 3],
-}
-
-/// The packet's rays in structure-of-arrays form, four lanes at a time.
-#[derive(Clone, Copy, Debug)]
-struct PacketLanes {
-    origin: [[Vec4; PACKET / 4]; 3],
-    inv_dir: [[Vec4; PACKET / 4]; 3],
+    pub(crate) near_is_max: [bool; 3],
 }
 
 impl PacketBound {
     /// The bound of `rays`, or `None` when some ray has an open slab (an axis-parallel
     /// or non-finite ray) or the rays' directions differ in sign on some axis.
-    pub(super) fn new(rays: &[NodeRay]) -> Option<Self> {
+    pub(crate) fn new(rays: &[NodeRay]) -> Option<Self> {
         let first = rays.first()?;
         let mut bound = Self {
             origin_lo: first.origin,
@@ -86,7 +76,7 @@ impl PacketBound {
     /// ray's own slab test passes, since rounding is monotonic in each operand, so the
     /// products at the interval corners bound every ray's rounded product.
     #[inline(always)]
-    pub(super) fn hit_children(&self, node: &WideNode, limit: f32) -> ([f32; WIDTH], u32) {
+    pub(crate) fn hit_children(&self, node: &WideNode, limit: f32) -> ([f32; WIDTH], u32) {
         if self.common_origin {
             return self.hit_children_from_one_origin(node, limit);
         }
@@ -168,206 +158,5 @@ impl PacketBound {
             mask |= hit.bitmask() << (half * 4);
         }
         (near_out, mask)
-    }
-}
-
-impl PacketLanes {
-    fn new(rays: &[NodeRay]) -> Self {
-        let mut origin = [[0.0f32; PACKET]; 3];
-        // Rays past the packet's end get a NaN reciprocal: their tests never pass.
-        let mut inv_dir = [[f32::NAN; PACKET]; 3];
-        for (i, ray) in rays.iter().enumerate() {
-            for axis in 0..3 {
-                origin[axis][i] = ray.origin[axis];
-                inv_dir[axis][i] = ray.inv_dir[axis];
-            }
-        }
-        let chunks = |values: &[f32; PACKET]| {
-            std::array::from_fn(|chunk| Vec4::from_slice(&values[chunk * 4..chunk * 4 + 4]))
-        };
-        Self {
-            origin: origin.each_ref().map(chunks),
-            inv_dir: inv_dir.each_ref().map(chunks),
-        }
-    }
-
-    /// Bit `i` set when ray `i` enters lane `lane` of `node` before its own limit
-    /// `limits[i]` (four rays to an entry, for as many rays as `limits` covers): each
-    /// ray's slab test with the same operations as its own walk's.
-    #[inline(always)]
-    fn hit_lane(&self, node: &WideNode, lane: usize, limits: &[Vec4]) -> u32 {
-        let planes = [
-            (node.min_x[lane], node.max_x[lane]),
-            (node.min_y[lane], node.max_y[lane]),
-            (node.min_z[lane], node.max_z[lane]),
-        ];
-        let mut mask = 0;
-        for (chunk, &limit) in limits.iter().enumerate() {
-            let slab = |axis: usize| {
-                let (lower, upper) = planes[axis];
-                let o = self.origin[axis][chunk];
-                let inv = self.inv_dir[axis][chunk];
-                (
-                    (Vec4::splat(lower) - o) * inv,
-                    (Vec4::splat(upper) - o) * inv,
-                )
-            };
-            let (x0, x1) = slab(0);
-            let (y0, y1) = slab(1);
-            let (z0, z1) = slab(2);
-            let t_near = x0.min(x1).max(y0.min(y1)).max(z0.min(z1).max(Vec4::ZERO));
-            let t_far = x0.max(x1).min(y0.max(y1)).min(z0.max(z1)) * FAR_SCALE;
-            let hit = t_near.cmple(t_far) & t_near.cmplt(limit);
-            mask |= hit.bitmask() << (chunk * 4);
-        }
-        mask
-    }
-}
-
-/// A pending subtree of the packet walk: an interior node, or a leaf lane of a node.
-#[derive(Clone, Copy, Debug, Default)]
-struct PacketPending {
-    node: u32,
-    /// The leaf's lane in `node`, or [`INTERIOR`] for `node` itself.
-    lane: u32,
-    t: f32,
-}
-
-const INTERIOR: u32 = u32::MAX;
-
-impl Bvh {
-    /// Closest hits for the packet `rays` (at most [`PACKET`]): `visit(first, count,
-    /// rays_in, entry_t, t_max)` tests the leaf over slots `first .. first + count` for
-    /// the rays whose bits are set in `rays_in` (bit `i` for `rays[i]`), each as its own
-    /// walk would test the leaf, lowering `t_max[i]` to the distance of a closer accepted
-    /// hit; `entry_t` is at most any of those rays' entry distance into the leaf's box.
-    /// Each ray reaches the leaves its own walk would (and possibly more, never fewer).
-    /// `prefetch(slot)` asks for the memory `visit` will read for a leaf starting at
-    /// `slot` when that leaf is put off behind a nearer child. Returns the rays' final
-    /// `t_max`, or `None` when the packet cannot be bounded (rays parallel to an axis,
-    /// non-finite, or with direction signs that differ): then nothing was tested.
-    #[inline]
-    pub fn traverse_closest_packet(
-        &self,
-        rays: &[Ray],
-        stats: &mut TraversalStats,
-        visit: impl FnMut(usize, usize, u32, f32, &mut [f32; PACKET]),
-        prefetch: impl Fn(usize),
-    ) -> Option<[f32; PACKET]> {
-        with_node_kernel!(kernel => kernel.traverse_packet(self, rays, stats, visit, prefetch))
-    }
-
-    /// [`traverse_closest_packet`](Self::traverse_closest_packet) with the packet box
-    /// tests of `kernel`.
-    #[inline(always)]
-    pub(super) fn traverse_closest_packet_with(
-        &self,
-        kernel: impl NodeKernel,
-        rays: &[Ray],
-        stats: &mut TraversalStats,
-        mut visit: impl FnMut(usize, usize, u32, f32, &mut [f32; PACKET]),
-        prefetch: impl Fn(usize),
-    ) -> Option<[f32; PACKET]> {
-        let rays = &rays[..rays.len().min(PACKET)];
-        let first = rays.first()?;
-        let node_rays: [NodeRay; PACKET] =
-            std::array::from_fn(|i| NodeRay::new(rays.get(i).unwrap_or(first)));
-        let node_rays = &node_rays[..rays.len()];
-        let bound = PacketBound::new(node_rays)?;
-        let lanes = PacketLanes::new(node_rays);
-        let mut t_max = [f32::NEG_INFINITY; PACKET];
-        for (t, ray) in t_max.iter_mut().zip(rays) {
-            *t = ray.t_max;
-        }
-        if self.wide.is_empty() {
-            return Some(t_max);
-        }
-        // The per-ray limits as a ray's own walk computes them.
-        let limits_of = |t_max: &[f32; PACKET]| -> [Vec4; PACKET / 4] {
-            std::array::from_fn(|chunk| {
-                Vec4::from_array(std::array::from_fn(|i| entry_limit(t_max[chunk * 4 + i])))
-            })
-        };
-        let mut limits = limits_of(&t_max);
-        let chunks = rays.len().div_ceil(4);
-        let packet_limit = |limits: &[Vec4; PACKET / 4]| {
-            limits
-                .iter()
-                .fold(f32::NEG_INFINITY, |m, l| m.max(l.max_element()))
-        };
-        let mut limit = packet_limit(&limits);
-        let (mut nodes, mut primitives) = (0u64, 0u64);
-        let mut stack = Stack::<PacketPending>::new();
-        let mut current = Some(PacketPending {
-            node: 0,
-            lane: INTERIOR,
-            t: 0.0,
-        });
-        loop {
-            let entry = match current.take() {
-                Some(entry) => entry,
-                None => loop {
-                    match stack.pop() {
-                        Some(entry) if entry.t < limit => break entry,
-                        Some(_) => {}
-                        None => {
-                            stats.nodes_visited += nodes;
-                            stats.primitive_tests += primitives;
-                            return Some(t_max);
-                        }
-                    }
-                },
-            };
-            let node = &self.wide[entry.node as usize];
-            if entry.lane != INTERIOR {
-                let lane = entry.lane as usize;
-                let rays_in = lanes.hit_lane(node, lane, &limits[..chunks]);
-                if rays_in != 0 {
-                    let (first, count) = (node.children[lane] as usize, node.counts[lane]);
-                    primitives += u64::from(rays_in.count_ones() * count);
-                    visit(first, count as usize, rays_in, entry.t, &mut t_max);
-                    limits = limits_of(&t_max);
-                    limit = packet_limit(&limits);
-                }
-                continue;
-            }
-            nodes += 1;
-            prefetch_children(node);
-            let (t, mut mask) = kernel.packet_hit_children(&bound, node, limit);
-            // Nearest first: sorted by entry distance, farthest at the front.
-            let mut hits = [entry; WIDTH];
-            let mut n = 0;
-            while mask != 0 {
-                let lane = mask.trailing_zeros() as usize;
-                mask &= mask - 1;
-                let child = if node.counts[lane] > 0 {
-                    PacketPending {
-                        node: entry.node,
-                        lane: lane as u32,
-                        t: t[lane],
-                    }
-                } else {
-                    PacketPending {
-                        node: node.children[lane],
-                        lane: INTERIOR,
-                        t: t[lane],
-                    }
-                };
-                insert_farthest_first(&mut hits, n, child, |e| e.t);
-                n += 1;
-            }
-            if n > 0 {
-                for &entry in &hits[..n - 1] {
-                    // Node loads that miss the cache are what a walk waits on most.
-                    if entry.lane == INTERIOR {
-                        prefetch_node(&self.wide[entry.node as usize]);
-                    } else {
-                        prefetch(node.children[entry.lane as usize] as usize);
-                    }
-                    stack.push(entry);
-                }
-                current = Some(hits[n - 1]);
-            }
-        }
     }
 }

@@ -60,7 +60,7 @@ impl WideNode {
     /// conservative against the watertight triangle test, which accepts hits within its
     /// own rounding of a face (a ray starting on a bound and leaving it at a denormal rate
     /// was culled at 10¹² m). Growth is monotone, so nested boxes stay nested.
-    pub(super) fn set_box(&mut self, lane: usize, b: Aabb) {
+    pub(crate) fn set_box(&mut self, lane: usize, b: Aabb) {
         const GROWTH: f32 = 1.0 / (1 << 21) as f32;
         let grow = |v: Vec3A, outward: f32| {
             (v + (v.abs() * GROWTH + Vec3A::splat(f32::MIN_POSITIVE)) * outward)
