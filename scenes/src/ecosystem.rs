@@ -6,7 +6,7 @@
 use crate::placement::{PlacementRule, poisson_disk};
 use crate::random::SceneRng;
 use crate::sky::PreethamSky;
-use crate::species::{self, LeafShape, PlantKind, PlantParams};
+use crate::species::{self, LeafShape, PlantKind, PlantParams, SpeciesModel};
 use crate::terrain::{HeightField, TerrainParams, ground_texture};
 use crate::{Plant, SceneBuild, SceneError, Species};
 use glam::{Quat, Vec2, Vec3};
@@ -603,16 +603,6 @@ impl EcosystemSpec {
             },
         }
     }
-}
-
-/// A species model ready for the library: a mesh whose triangles name shaders by local
-/// index into `shaders`.
-#[derive(Clone, Debug)]
-pub struct SpeciesModel {
-    /// The mesh.
-    pub mesh: TriangleMesh,
-    /// Its shaders; their ids are ignored and replaced by the scene's.
-    pub shaders: Vec<Shader>,
 }
 
 /// Bark and alpha-masked leaf shaders for a generated plant.

@@ -17,7 +17,7 @@
 //! dropped with a warning that counts them; singular instance transforms are left out
 //! and counted.
 
-use crate::ecosystem::SpeciesModel;
+use crate::species::SpeciesModel;
 use crate::{Plant, SceneBuild, SceneError, Species};
 use glam::{Affine3A, Mat4, Quat, Vec2, Vec3, Vec3A, Vec4};
 use rayon::prelude::*;

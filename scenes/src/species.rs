@@ -7,7 +7,7 @@
 use crate::random::{SceneRng, value_noise};
 use glam::{Quat, Vec2, Vec3};
 use sylva_engine::mesh::TriangleMesh;
-use sylva_engine::shading::{Texture, linear_to_srgb};
+use sylva_engine::shading::{Shader, Texture, linear_to_srgb};
 
 /// Local shader slot of bark and stems in a generated mesh.
 pub const BARK: u32 = 0;
@@ -712,6 +712,16 @@ pub fn leaf_texture(shape: LeafShape, color: Vec3, seed: u64) -> Texture {
         })
         .collect();
     Texture::from_srgba8(n, n, texels).expect("the leaf texture has n×n texels")
+}
+
+/// A species model ready for the library: a mesh whose triangles name shaders by local
+/// index into `shaders`.
+#[derive(Clone, Debug)]
+pub struct SpeciesModel {
+    /// The mesh.
+    pub mesh: TriangleMesh,
+    /// Its shaders; their ids are ignored and replaced by the scene's.
+    pub shaders: Vec<Shader>,
 }
 
 #[cfg(test)]
