@@ -12,7 +12,7 @@ mod support;
 use glam::Vec2;
 use std::time::{Duration, Instant};
 use support::{count_rays, two_thread_pool};
-use sylva::engine::bvh::TraversalStats;
+use sylva::engine::bvh::{BuildParams, TraversalStats};
 use sylva::engine::camera::CameraView;
 use sylva::engine::geometry::GeometryLibrary;
 use sylva::engine::math::Ray;
@@ -122,7 +122,7 @@ fn run(name: &str, wind_gain: f64, pool: &rayon::ThreadPool) {
         let mut rebuilt = TopLevel::default();
         for _ in 0..3 {
             let start = Instant::now();
-            rebuilt = pool.install(|| TopLevel::build(library, &descs, Default::default()));
+            rebuilt = pool.install(|| TopLevel::build(library, &descs, BuildParams::TOP_LEVEL));
             build_times.push(start.elapsed().as_secs_f64());
         }
         let (mut refit_traces, mut built_traces) = (Vec::new(), Vec::new());

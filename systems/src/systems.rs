@@ -339,43 +339,7 @@ pub fn compile_lights(
 ) {
     let _timer = profiler.time(ProfiledSystem::CompileLights);
     let _span = tracing::info_span!("compile_lights").entered();
-    let mut directional = Vec::new();
-    for light in &suns {
-        let direction = light.direction.normalize_or_zero();
-        if direction == glam::Vec3::ZERO
-            || !light.irradiance.is_finite()
-            || light.irradiance.min_element() < 0.0
-        {
-            tracing::warn!(
-                ?light,
-                "directional light ignored: zero direction or bad irradiance"
-            );
-            continue;
-        }
-        directional.push(DirectionalLight {
-            direction,
-            ..*light
-        });
-    }
-    let sky = skies
-        .iter()
-        .find(|s| s.zenith.is_finite() && s.horizon.is_finite() && s.ground.is_finite())
-        .copied();
-    if skies.iter().count() > 1 {
-        tracing::warn!("more than one sky: using the first valid one");
-    }
-    if environments.iter().count() > 1 {
-        tracing::warn!("more than one environment light: using the first");
-    }
-    let environment = environments
-        .iter()
-        .next()
-        .map(|e| std::sync::Arc::new(e.clone()));
-    *lights = LightSet {
-        directional,
-        sky,
-        environment,
-    };
+    *lights = LightSet::compile(&suns, &skies, &environments);
 }
 
 /// Run condition of [`adaptive_transparency_lod`]: the shaders or a camera's curve

@@ -65,6 +65,53 @@ pub struct LightSet {
 }
 
 impl LightSet {
+    /// The set the kernel reads from the scene's light components: directional lights
+    /// with a usable direction and irradiance (normalised; others are left out with a
+    /// warning), the first valid sky and the first environment (a warning when there
+    /// are more). The schedule's `compile_lights` and the benchmarks both build it here.
+    pub fn compile<'a>(
+        suns: impl IntoIterator<Item = &'a DirectionalLight>,
+        skies: impl IntoIterator<Item = &'a SkyLight>,
+        environments: impl IntoIterator<Item = &'a EnvironmentLight>,
+    ) -> LightSet {
+        let mut directional = Vec::new();
+        for light in suns {
+            let direction = light.direction.normalize_or_zero();
+            if direction == Vec3::ZERO
+                || !light.irradiance.is_finite()
+                || light.irradiance.min_element() < 0.0
+            {
+                tracing::warn!(
+                    ?light,
+                    "directional light ignored: zero direction or bad irradiance"
+                );
+                continue;
+            }
+            directional.push(DirectionalLight {
+                direction,
+                ..*light
+            });
+        }
+        let skies: Vec<&SkyLight> = skies.into_iter().collect();
+        let sky = skies
+            .iter()
+            .find(|s| s.zenith.is_finite() && s.horizon.is_finite() && s.ground.is_finite())
+            .map(|s| **s);
+        if skies.len() > 1 {
+            tracing::warn!("more than one sky: using the first valid one");
+        }
+        let mut environments = environments.into_iter();
+        let environment = environments.next().map(|e| Arc::new(e.clone()));
+        if environments.next().is_some() {
+            tracing::warn!("more than one environment light: using the first");
+        }
+        LightSet {
+            directional,
+            sky,
+            environment,
+        }
+    }
+
     /// A hash of every light: directions and colours, the sky, and an environment
     /// map's texels and virtual lights (a cluster's ranks compare it before they render).
     pub fn content_hash(&self) -> u64 {

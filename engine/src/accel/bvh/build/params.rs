@@ -158,9 +158,3 @@ impl BuildParams {
         ("bottom-level", Self::BOTTOM_LEVEL),
     ];
 }
-
-impl Default for BuildParams {
-    fn default() -> Self {
-        Self::BALANCED
-    }
-}
