@@ -339,7 +339,7 @@ pub fn compile_lights(
 ) {
     let _timer = profiler.time(ProfiledSystem::CompileLights);
     let _span = tracing::info_span!("compile_lights").entered();
-    *lights = LightSet::compile(&suns, &skies, &environments);
+    *lights = LightSet::compile(suns, skies, environments);
 }
 
 /// Run condition of [`adaptive_transparency_lod`]: the shaders or a camera's curve
