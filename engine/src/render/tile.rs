@@ -1,5 +1,5 @@
 //! Rendering tiles and frames: a tile's camera rays traced in packets and shaded
-//! pixel by pixel into [`PixelSums`](crate::film::PixelSums), a frame's tiles in
+//! pixel by pixel into [`PixelSums`], a frame's tiles in
 //! parallel on the rayon pool, optionally given up when a cancel flag is set.
 
 use super::camera::CameraView;

@@ -5,7 +5,7 @@
 use crate::util::math::{Ray, gamma};
 use glam::Vec3A;
 
-/// A ray prepared for slab tests against the boxes of a [`WideNode`].
+/// A ray prepared for slab tests against the boxes of a [`WideNode`](super::WideNode).
 #[derive(Clone, Copy, Debug)]
 pub struct NodeRay {
     pub(crate) origin: [f32; 3],

@@ -23,7 +23,7 @@ pub struct BuildParams {
     /// multiple holding [`PADDING`](super::PADDING) (so slot `s` is lane `s % n` of
     /// block `s / n`). 1 counts each primitive and pads nothing.
     pub leaf_block: usize,
-    /// Nodes of at most this many primitives (up to [`WIDTH`](super::WIDTH)) are not
+    /// Nodes of at most this many primitives (up to [`WIDTH`](crate::accel::bvh::WIDTH)) are not
     /// split but kept as one cluster, and the wide tree gives each of their primitives a
     /// lane of its own, in the node above when it has the
     /// lanes to spare, else in a node of their own. 1 turns it off; it applies only to
@@ -37,7 +37,7 @@ pub struct BuildParams {
     /// The size from which a build sorts into grid cells (see `grid_cell`).
     pub grid_from: usize,
     /// Subtrees that need at most this many wide levels (leaves of `max_leaf_size`
-    /// under nodes of [`WIDTH`](super::WIDTH) lanes) open only the lanes that must open
+    /// under nodes of [`WIDTH`](crate::accel::bvh::WIDTH) lanes) open only the lanes that must open
     /// to keep that depth, and lanes whose leaves all fit in the lanes left, instead of
     /// every lane the node has room for, so their lower nodes come out full. Opening the widest lanes first fills a node's lanes from
     /// the top, and a complete tree whose binary depth is one more than a multiple of
