@@ -6,7 +6,7 @@
 
 use std::time::Instant;
 use sylva::prelude::*;
-use sylva::systems::embed::stage_name;
+use sylva::systems::stage_name;
 
 fn main() {
     let mut world = World::new();

@@ -34,11 +34,12 @@ pub mod prelude {
         Lens, Shader, ShaderId, SkyLight, Transform,
     };
     pub use sylva_scenes::{SceneBuild, build_scene, move_plant, plant_at, spawn};
-    pub use sylva_systems::embed::{FrameImage, RenderOptions, Stages, install};
+    pub use sylva_systems::embed::FrameImage;
     pub use sylva_systems::picking::pick;
     pub use sylva_systems::{
         Fingerprint, Flow, Frame, Progress, Quality, RenderPool, RenderSeed, RenderStats,
         RenderSystems, StopAt, Stopped, TileProgress, TopLevelState, frame_schedule,
         init_render_world, refine,
     };
+    pub use sylva_systems::{RenderOptions, Stages, install};
 }

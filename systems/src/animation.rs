@@ -4,8 +4,8 @@
 //! resumed at any image, or rendered on any number of threads, is bit for bit the one
 //! rendered in one go.
 
-use crate::embed::has_component;
-use crate::systems::{
+use crate::schedule::has_component;
+use crate::stages::{
     NodeAnimationPlayer, advance_animation_clock, animate, follow_camera_paths, play_node_animation,
 };
 use crate::{Flow, Progress, RenderSeed, StopAt, Stopped, refine};

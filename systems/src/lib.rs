@@ -21,7 +21,7 @@
 //!    results. The CLI writes its images after the schedule has run (with their
 //!    metadata, snapshots and checkpoints, on the progressive driver [`refine`]).
 //!
-//! A program with its own schedule installs the stages with [`embed::install`], choosing
+//! A program with its own schedule installs the stages with [`install`], choosing
 //! which optional stages it needs and whose threads render.
 //!
 //! Threads: all data-parallel work (tiles, BVH builds) runs on the rayon [`RenderPool`];
@@ -37,49 +37,23 @@ pub mod picking;
 pub mod profile;
 mod progressive;
 mod quality;
-mod systems;
+mod schedule;
+mod stages;
 pub mod walkthrough;
 
 pub use progressive::{Flow, Progress, StopAt, Stopped, refine};
 pub use quality::{Fingerprint, Quality};
-pub use systems::*;
+pub use schedule::{
+    Frame, RenderOptions, RenderSystems, Stages, add_render_systems, frame_schedule,
+    init_render_world, install, stage_name,
+};
+pub use stages::*;
 
 use bevy_ecs::prelude::*;
-use bevy_ecs::schedule::{MultiThreadedExecutor, ScheduleLabel};
 use std::sync::Arc;
 use std::time::Duration;
 use sylva_engine::bvh::{BuildParams, TraversalStats};
 use sylva_engine::film::Tile;
-use sylva_engine::geometry::GeometryLibrary;
-use sylva_engine::light::LightSet;
-use sylva_engine::opacity::OpacityMaps;
-use sylva_engine::shading::ShaderTable;
-use sylva_engine::tlas::TopLevel;
-
-/// The stages of a frame, run in this order.
-#[derive(SystemSet, Debug, Clone, Copy, PartialEq, Eq, Hash)]
-pub enum RenderSystems {
-    /// Rigid motion writes `Transform`s.
-    Animate,
-    /// Acceleration structures, shaders and lights are brought up to date.
-    Prepare,
-    /// Each camera's frame plan: transparency curve and light subsets.
-    Plan,
-    /// Each camera renders a frame.
-    Render,
-    /// Frames are added to films.
-    Accumulate,
-    /// Films are filtered for display.
-    Display,
-    /// A frame's results are read: [`embed::FrameImage`]s are refreshed, and a
-    /// program's own systems go here or after (the CLI writes its images after the
-    /// schedule).
-    Output,
-}
-
-/// The label of the frame schedule.
-#[derive(ScheduleLabel, Debug, Clone, Copy, PartialEq, Eq, Hash)]
-pub struct Frame;
 
 /// The one thread pool for data-parallel work: render tiles and BVH builds.
 #[derive(Resource, Clone)]
@@ -227,41 +201,3 @@ pub struct RenderStats {
 /// setter clears the flag before the next frame.
 #[derive(Resource, Clone, Debug, Default)]
 pub struct FrameCancel(pub Option<Arc<std::sync::atomic::AtomicBool>>);
-
-/// Inserts every resource the schedule needs (keeping those already present) and a
-/// render pool of `threads` workers (0 = one per core).
-pub fn init_render_world(
-    world: &mut World,
-    threads: usize,
-) -> Result<(), rayon::ThreadPoolBuildError> {
-    world.insert_resource(RenderPool::new(threads)?);
-    init_resources(world);
-    Ok(())
-}
-
-/// Inserts the resources the stages read, keeping those already present.
-fn init_resources(world: &mut World) {
-    world.init_resource::<GeometryLibrary>();
-    world.init_resource::<TopLevel>();
-    world.init_resource::<ShaderTable>();
-    world.init_resource::<OpacityMaps>();
-    world.init_resource::<LightSet>();
-    world.init_resource::<BuildSettings>();
-    world.init_resource::<RenderSeed>();
-    world.init_resource::<WorldOrigin>();
-    world.init_resource::<sylva_engine::sway::AnimationClock>();
-    world.init_resource::<TileProgress>();
-    world.init_resource::<TopLevelState>();
-    world.init_resource::<RenderStats>();
-    world.init_resource::<FrameCancel>();
-    world.init_resource::<profile::FrameProfiler>();
-}
-
-/// The frame schedule with every stage ([`embed::Stages::ALL`]), each with its run
-/// condition, on the multi-threaded executor.
-pub fn frame_schedule() -> Schedule {
-    let mut schedule = Schedule::new(Frame);
-    schedule.set_executor(MultiThreadedExecutor::new());
-    embed::add_render_systems(&mut schedule, embed::Stages::ALL);
-    schedule
-}

@@ -14,10 +14,12 @@ use sylva_engine::film::Film;
 use sylva_engine::geometry::{Geometry, GeometryLibrary};
 use sylva_engine::light::{DirectionalLight, SkyLight};
 use sylva_engine::mesh::TriangleMesh;
+use sylva_engine::render::FramePlan;
 use sylva_engine::shading::{Shader, ShaderId};
 use sylva_engine::sway::{RestPose, Sway, Wind};
-use sylva_systems::embed::{FrameImage, RenderOptions, Stages, install, stage_name};
+use sylva_systems::embed::FrameImage;
 use sylva_systems::*;
+use sylva_systems::{RenderOptions, Stages, install, stage_name};
 
 fn quad(scale: f32) -> TriangleMesh {
     TriangleMesh {
@@ -194,6 +196,42 @@ fn every_stage_runs_when_installed_and_the_scene_needs_it() {
     assert!(
         !ran.contains("publish_frame_images"),
         "no camera has a FrameImage"
+    );
+}
+
+#[test]
+fn light_subsets_run_without_the_transparency_stage_they_are_ordered_after() {
+    let mut world = World::new();
+    let mut schedule = Schedule::default();
+    let options = RenderOptions {
+        threads: 1,
+        stages: Stages {
+            environment: true,
+            ..Stages::NONE
+        },
+        ..Default::default()
+    };
+    install(&mut world, &mut schedule, &options).unwrap();
+    let (_, camera) = spawn_scene(&mut world);
+    world
+        .entity_mut(camera)
+        .insert(sylva_engine::interleave::LightInterleave::default());
+    // A sky brighter towards the zenith: median cut makes many lights of it.
+    let texels = (0..16 * 8)
+        .map(|i| Vec3::splat(1.0 + (8 - i / 16) as f32))
+        .collect();
+    let (map, _) = EnvironmentMap::new(16, 8, texels).unwrap();
+    world.spawn(EnvironmentLight::new(map, 16));
+    let (ran, installed) = run_and_list(&mut world, &mut schedule);
+    assert!(
+        !installed.contains("adaptive_transparency_lod"),
+        "{installed:?}"
+    );
+    assert!(ran.contains("assign_light_subsets"), "{ran:?}");
+    let plan = *world.get::<FramePlan>(camera).unwrap();
+    assert!(
+        plan.light_subsets.is_some() && plan.transparency.is_none(),
+        "{plan:?}"
     );
 }
 

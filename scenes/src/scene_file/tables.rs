@@ -134,7 +134,7 @@ pub(super) fn camera(
     let camera_fov = fov(&c.fov, "camera.fov", 55.0)?;
     let path = match &c.path {
         Some(keys) => Some(camera_path(
-            &cx,
+            cx,
             keys,
             &c.path_interpolation,
             (eye_height, target_height, camera_fov),
