@@ -12,29 +12,12 @@ use sylva_engine::geometry::{Geometry, GeometryLibrary};
 use sylva_engine::light::{DirectionalLight, LightSet, SkyLight};
 use sylva_engine::mesh::TriangleMesh;
 use sylva_engine::opacity::OpacityMaps;
-use sylva_engine::render::{RenderParams, RenderScene, render_frame, render_tile};
+use sylva_engine::render::{RenderData, RenderParams, RenderScene, render_frame, render_tile};
 use sylva_engine::shading::{Shader, ShaderId, ShaderTable, Texture};
 use sylva_engine::tlas::{InstanceDesc, TopLevel};
 
-struct Fixture {
-    library: GeometryLibrary,
-    top_level: TopLevel,
-    shaders: ShaderTable,
-    lights: LightSet,
-    opacity: OpacityMaps,
-}
-
-impl Fixture {
-    fn scene(&self) -> RenderScene<'_> {
-        RenderScene {
-            geometry: &self.library,
-            top_level: &self.top_level,
-            shaders: &self.shaders,
-            lights: &self.lights,
-            opacity: &self.opacity,
-        }
-    }
-}
+/// The fixture is the kernel's owned render data.
+type Fixture = RenderData;
 
 /// A square of side 2·`half` at y = 0 facing +Y, its texture repeated 8 times (shader 0).
 fn textured_square(half: f32) -> TriangleMesh {

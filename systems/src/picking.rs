@@ -9,11 +9,6 @@ use sylva_engine::bvh::TraversalStats;
 use sylva_engine::camera::{Camera, CameraView};
 use sylva_engine::components::Transform;
 use sylva_engine::geometry::GeometryLibrary;
-use sylva_engine::light::LightSet;
-use sylva_engine::opacity::OpacityMaps;
-use sylva_engine::render::RenderScene;
-use sylva_engine::shading::ShaderTable;
-use sylva_engine::tlas::TopLevel;
 
 /// The plant an editor has selected, if any.
 #[derive(Resource, Clone, Copy, Debug, Default, PartialEq)]
@@ -46,13 +41,7 @@ pub fn pick(world: &World, camera: Entity, x: u32, y: u32) -> Option<Picked> {
         .get_resource::<WorldOrigin>()
         .copied()
         .unwrap_or_default();
-    let scene = RenderScene {
-        geometry: world.get_resource::<GeometryLibrary>()?,
-        top_level: world.get_resource::<TopLevel>()?,
-        shaders: world.get_resource::<ShaderTable>()?,
-        lights: world.get_resource::<LightSet>()?,
-        opacity: world.get_resource::<OpacityMaps>()?,
-    };
+    let scene = crate::scene_in(world)?;
     let view = CameraView::new(cam, &origin.relative(transform.to_affine()));
     let ray = view.ray(Vec2::new(x as f32 + 0.5, y as f32 + 0.5), Vec2::splat(0.5));
     let hit = scene.closest(&ray, &mut TraversalStats::default())?;

@@ -7,6 +7,7 @@ use crate::{
     WorldOrigin,
 };
 use bevy_ecs::prelude::*;
+use bevy_ecs::system::SystemParam;
 use std::collections::HashSet;
 use std::time::Instant;
 use sylva_engine::camera::{Camera, CameraView};
@@ -414,6 +415,54 @@ pub fn assign_light_subsets(
     }
 }
 
+/// The five resources the kernel reads, as one system parameter.
+#[derive(SystemParam)]
+pub struct SceneResources<'w> {
+    /// Meshes and their BLASes.
+    pub library: Res<'w, GeometryLibrary>,
+    /// The TLAS.
+    pub top_level: Res<'w, TopLevel>,
+    /// Shaders by id.
+    pub shaders: Res<'w, ShaderTable>,
+    /// Lights.
+    pub lights: Res<'w, LightSet>,
+    /// Opacity micromaps.
+    pub opacity: Res<'w, OpacityMaps>,
+}
+
+impl SceneResources<'_> {
+    /// The kernel's view of the resources.
+    pub fn scene(&self) -> RenderScene<'_> {
+        RenderScene {
+            geometry: &self.library,
+            top_level: &self.top_level,
+            shaders: &self.shaders,
+            lights: &self.lights,
+            opacity: &self.opacity,
+        }
+    }
+
+    /// True when what a frame shows changed since the system last ran: the geometry,
+    /// the top level, a shader or a light (opacity maps follow the shaders).
+    pub fn changed(&self) -> bool {
+        self.library.is_changed()
+            || self.top_level.is_changed()
+            || self.shaders.is_changed()
+            || self.lights.is_changed()
+    }
+}
+
+/// The kernel's view of `world`'s render resources, when it has them all.
+pub fn scene_in(world: &World) -> Option<RenderScene<'_>> {
+    Some(RenderScene {
+        geometry: world.get_resource::<GeometryLibrary>()?,
+        top_level: world.get_resource::<TopLevel>()?,
+        shaders: world.get_resource::<ShaderTable>()?,
+        lights: world.get_resource::<LightSet>()?,
+        opacity: world.get_resource::<OpacityMaps>()?,
+    })
+}
+
 /// Renders one frame per camera, tiles in parallel on the render pool. The frame index
 /// is the film's frame count, or 0 — restarting accumulation — when the camera or the
 /// scene changed since the last frame.
@@ -423,11 +472,7 @@ pub fn assign_light_subsets(
 )]
 pub fn render_tiles(
     pool: Res<RenderPool>,
-    library: Res<GeometryLibrary>,
-    top_level: Res<TopLevel>,
-    shaders: Res<ShaderTable>,
-    lights: Res<LightSet>,
-    opacity: Res<OpacityMaps>,
+    data: SceneResources,
     seed: Res<RenderSeed>,
     origin: Res<WorldOrigin>,
     progress: Res<TileProgress>,
@@ -436,22 +481,14 @@ pub fn render_tiles(
     mut stats: ResMut<RenderStats>,
     mut restart_owed: Local<HashSet<Entity>>,
     profiler: Res<FrameProfiler>,
-    (mut cluster, mut cluster_scene): (Option<ResMut<Cluster>>, Local<Option<u64>>),
+    mut cluster: Option<ResMut<Cluster>>,
+    mut cluster_scene: Local<Option<u64>>,
 ) {
     let _timer = profiler.time(ProfiledSystem::RenderTiles);
     let _span = tracing::info_span!("render_tiles").entered();
     let start = Instant::now();
-    let scene_changed = library.is_changed()
-        || top_level.is_changed()
-        || shaders.is_changed()
-        || lights.is_changed();
-    let scene = RenderScene {
-        geometry: &library,
-        top_level: &top_level,
-        shaders: &shaders,
-        lights: &lights,
-        opacity: &opacity,
-    };
+    let scene_changed = data.changed();
+    let scene = data.scene();
     let on_tile = |tile: &Tile, time: std::time::Duration| {
         profiler.tile(*tile, time);
         if let Some(callback) = &progress.0 {
@@ -460,7 +497,10 @@ pub fn render_tiles(
     };
     if cluster.is_some() && (cluster_scene.is_none() || scene_changed) {
         *cluster_scene = Some(crate::cluster::scene_hash(
-            &library, &top_level, &shaders, &lights,
+            &data.library,
+            &data.top_level,
+            &data.shaders,
+            &data.lights,
         ));
     }
     let mut frame_stats = sylva_engine::bvh::TraversalStats::default();

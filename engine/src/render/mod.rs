@@ -17,5 +17,5 @@ pub mod tile;
 
 pub use integrate::{ShadedSample, SurfacePoint};
 pub use plan::{FramePlan, RenderParams, SampleShading};
-pub use scene::{PacketScratch, RenderScene};
+pub use scene::{PacketScratch, RenderData, RenderScene};
 pub use tile::{render_frame, render_frame_unless, render_tile};

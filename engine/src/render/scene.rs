@@ -34,6 +34,37 @@ pub struct RenderScene<'a> {
     pub lights: &'a LightSet,
 }
 
+/// The flat render data owned: what a [`RenderScene`] borrows, for a program, bench or
+/// test that builds its scene outside a `World` (the schedule keeps the same five as
+/// resources).
+#[derive(Clone, Debug, Default)]
+pub struct RenderData {
+    /// Meshes and their BLASes.
+    pub library: GeometryLibrary,
+    /// The TLAS over the instances.
+    pub top_level: TopLevel,
+    /// Shaders by id.
+    pub shaders: ShaderTable,
+    /// Lights.
+    pub lights: LightSet,
+    /// Opacity micromaps ([`OpacityMaps::default`]: none, every alpha test samples the
+    /// texture).
+    pub opacity: OpacityMaps,
+}
+
+impl RenderData {
+    /// The kernel's view of this data.
+    pub fn scene(&self) -> RenderScene<'_> {
+        RenderScene {
+            geometry: &self.library,
+            top_level: &self.top_level,
+            shaders: &self.shaders,
+            lights: &self.lights,
+            opacity: &self.opacity,
+        }
+    }
+}
+
 /// What the hit filter made of a candidate.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 enum FilterOutcome {
