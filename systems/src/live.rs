@@ -5,6 +5,12 @@
 //! sees the changed transform) and stops at a frame limit, after which the thread sleeps
 //! until the next command.
 //!
+//! Frames never starve: a command gives up only a frame that refines the view already
+//! shown. A frame that shows a new view (the first after a move or an edit) is finished
+//! whatever arrives meanwhile, and the commands that arrived coalesce into the next one
+//! (the latest pose wins), so a held key shows a new view every frame time instead of
+//! none until it is released.
+//!
 //! On a cluster ([`Cluster`] resource on rank 0, [`serve_live`] on the other ranks)
 //! every rank holds the same world: rank 0's thread sends each batch of camera moves and
 //! [`LiveCommand::Shared`] edits to the others before the frame that shows them, every
@@ -17,8 +23,8 @@ use crate::profile::{FrameProfiler, ProfileLog};
 use crate::progressive::{StopAt, refine};
 use crate::{FrameCancel, RenderStats, TopLevelState, frame_schedule, shown_film};
 use bevy_ecs::prelude::*;
+use crossbeam_channel::{Receiver, RecvTimeoutError, Sender};
 use std::sync::atomic::{AtomicBool, Ordering};
-use std::sync::mpsc::{self, Receiver, RecvTimeoutError, Sender};
 use std::sync::{Arc, Mutex, PoisonError};
 use std::thread::JoinHandle;
 use std::time::Duration;
@@ -106,6 +112,59 @@ impl FrameLog {
         sorted.sort();
         let rank = (n * 95).div_ceil(100).clamp(1, n);
         Some((mean, sorted[rank - 1]))
+    }
+}
+
+/// What a window user feels, measured where the frames are shown: how many new images a
+/// second reach the screen, and how old the newest input an image shows was when it
+/// arrived (input-to-image latency).
+#[derive(Clone, Debug, Default)]
+pub struct Responsiveness {
+    /// Commands sent and not yet seen in a shown image: sequence number and send time.
+    pending: std::collections::VecDeque<(u64, std::time::Instant)>,
+    /// When the images of the last second were shown.
+    shown: std::collections::VecDeque<std::time::Instant>,
+    /// The newest command an image has shown.
+    applied: u64,
+    /// The latency of the last image that showed a new command.
+    latency: Option<Duration>,
+}
+
+impl Responsiveness {
+    /// Notes that command `number` was sent at `at`.
+    pub fn sent(&mut self, number: u64, at: std::time::Instant) {
+        self.pending.push_back((number, at));
+    }
+
+    /// Notes that an image showing every command up to `applied` was shown at `at`.
+    pub fn shown(&mut self, applied: u64, at: std::time::Instant) {
+        self.shown.push_back(at);
+        while self
+            .shown
+            .front()
+            .is_some_and(|&t| at.duration_since(t) > Duration::from_secs(1))
+        {
+            self.shown.pop_front();
+        }
+        if applied > self.applied {
+            // The newest command this image shows: its age is the image's latency.
+            let newest = self.pending.iter().rev().find(|(n, _)| *n <= applied);
+            if let Some(&(_, sent)) = newest {
+                self.latency = Some(at.saturating_duration_since(sent));
+            }
+            self.applied = applied;
+        }
+        self.pending.retain(|&(n, _)| n > applied);
+    }
+
+    /// Images shown in the last second.
+    pub fn shown_per_second(&self) -> usize {
+        self.shown.len()
+    }
+
+    /// How old the newest input was when the last image that showed a new one appeared.
+    pub fn latency(&self) -> Option<Duration> {
+        self.latency
     }
 }
 
@@ -213,10 +272,35 @@ fn apply_encoded(world: &mut World, camera: Entity, bytes: &[u8]) {
     }
 }
 
+/// What the render thread shares with the window about the frame in flight: whether a
+/// new command may give it up, and the flag that does.
+#[derive(Clone, Default)]
+struct InFlight {
+    /// Set: the frame is given up at its next tile.
+    cancel: Arc<AtomicBool>,
+    /// The frame shows a new view (or the thread is taking commands): commands wait for
+    /// the next frame instead of giving this one up.
+    keep: Arc<AtomicBool>,
+}
+
+impl InFlight {
+    /// What a new command does to the frame in flight: gives it up unless it is kept.
+    fn command_sent(&self) {
+        if !self.keep.load(Ordering::SeqCst) {
+            self.cancel.store(true, Ordering::SeqCst);
+        }
+    }
+
+    /// Gives up the frame in flight whatever it is (quitting).
+    fn give_up(&self) {
+        self.cancel.store(true, Ordering::SeqCst);
+    }
+}
+
 /// The render thread's handle: commands in, the latest frame out.
 pub struct LiveRender {
     commands: Sender<(u64, LiveCommand)>,
-    cancel: Arc<AtomicBool>,
+    in_flight: InFlight,
     frame_log: Arc<Mutex<FrameLog>>,
     sent: u64,
     latest: Arc<Mutex<Option<ShownImage>>>,
@@ -248,14 +332,14 @@ impl LiveRender {
         profile: Option<Arc<Mutex<ProfileLog>>>,
         frame_ready: impl Fn() + Send + 'static,
     ) -> std::io::Result<Self> {
-        let (commands, inbox) = mpsc::channel();
+        let (commands, inbox) = crossbeam_channel::unbounded();
         let latest = Arc::new(Mutex::new(None));
-        let cancel = Arc::new(AtomicBool::new(false));
+        let in_flight = InFlight::default();
         let frame_log = Arc::new(Mutex::new(FrameLog::default()));
         let log = frame_log.clone();
         let mut world = world;
-        world.insert_resource(FrameCancel(Some(cancel.clone())));
-        let flag = cancel.clone();
+        world.insert_resource(FrameCancel(Some(in_flight.cancel.clone())));
+        let flag = in_flight.clone();
         let published = latest.clone();
         let failure = Arc::new(Mutex::new(None));
         let failed = failure.clone();
@@ -288,7 +372,7 @@ impl LiveRender {
             })?;
         Ok(Self {
             commands,
-            cancel,
+            in_flight,
             frame_log,
             sent: 0,
             latest,
@@ -302,9 +386,9 @@ impl LiveRender {
     pub fn send(&mut self, command: LiveCommand) -> Option<u64> {
         self.sent += 1;
         self.commands.send((self.sent, command)).ok()?;
-        // The frame in progress would not show what the command changes: give it up at
-        // its next tile.
-        self.cancel.store(true, Ordering::SeqCst);
+        // A frame that refines the view already shown would not show what the command
+        // changes: it is given up at its next tile. One that shows a new view is kept.
+        self.in_flight.command_sent();
         Some(self.sent)
     }
 
@@ -342,7 +426,7 @@ impl LiveRender {
     /// the thread failed ([`failure`](Self::failure)).
     pub fn stop(mut self) -> Option<World> {
         let _ = self.commands.send((u64::MAX, LiveCommand::Quit));
-        self.cancel.store(true, Ordering::SeqCst);
+        self.in_flight.give_up();
         self.thread.take().and_then(|t| t.join().ok().flatten())
     }
 }
@@ -351,7 +435,7 @@ impl Drop for LiveRender {
     fn drop(&mut self) {
         if let Some(thread) = self.thread.take() {
             let _ = self.commands.send((u64::MAX, LiveCommand::Quit));
-            self.cancel.store(true, Ordering::SeqCst);
+            self.in_flight.give_up();
             let _ = thread.join();
         }
     }
@@ -488,7 +572,7 @@ fn run(
     mut world: World,
     camera: Entity,
     max_frames: u32,
-    (inbox, cancel): (Receiver<(u64, LiveCommand)>, &AtomicBool),
+    (inbox, in_flight): (Receiver<(u64, LiveCommand)>, &InFlight),
     (published, log, mut profile): (&Mutex<Option<ShownImage>>, &Mutex<FrameLog>, SharedProfile),
     frame_ready: impl Fn(),
 ) -> Result<World, ClusterError> {
@@ -525,10 +609,13 @@ fn run(
         } else {
             None
         };
-        // Cleared before the commands are taken: a command sent after this cancels the
-        // coming frame, which would not show it.
-        cancel.store(false, Ordering::SeqCst);
+        // Commands sent while they are taken wait for the frame; the flag is cleared
+        // before they are taken, so none that is not taken gives up the coming frame.
+        in_flight.keep.store(true, Ordering::SeqCst);
+        in_flight.cancel.store(false, Ordering::SeqCst);
+        let mut took = first.is_some();
         for (number, command) in first.into_iter().chain(inbox.try_iter()) {
+            took = true;
             match apply(&mut world, camera, command) {
                 Applied::Here => {}
                 Applied::Everywhere(edit) => unsent.push(edit),
@@ -539,11 +626,22 @@ fn run(
             }
             applied = number;
         }
+        // A frame that shows a new view (after commands, after a frame given up, or the
+        // first) is kept whatever comes meanwhile; one that only refines the shown view
+        // is given up by the next command. A command that came after the inbox was
+        // emptied and before that was said is taken first.
+        let frames = world.get::<Film>(camera).map_or(0, Film::frames);
+        let new_view = took || given_up || frames == 0 || animating(&world);
+        if !new_view {
+            in_flight.keep.store(false, Ordering::SeqCst);
+            if !inbox.is_empty() {
+                continue;
+            }
+        }
         announce(&mut world, &unsent, LiveStep::Render, &mut workers_ahead)?;
         unsent.clear();
         // One frame, whether or not it restarted the film; nothing to show when it was
         // given up.
-        let frames = world.get::<Film>(camera).map_or(0, Film::frames);
         let progress = one_frame(
             &mut world,
             &mut schedule,
@@ -615,6 +713,32 @@ fn run(
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn latency_is_the_age_of_the_newest_input_an_image_shows() {
+        let start = std::time::Instant::now();
+        let at = |ms| start + Duration::from_millis(ms);
+        let mut r = Responsiveness::default();
+        assert_eq!(r.latency(), None);
+        for n in 1..=5 {
+            r.sent(n, at(n * 16));
+        }
+        // An image that shows the first three commands, 200 ms in: the third is 152 ms old.
+        r.shown(3, at(200));
+        assert_eq!(r.latency(), Some(Duration::from_millis(152)));
+        // Refining the same view keeps the latency of the image that showed the input.
+        r.shown(3, at(300));
+        assert_eq!(r.latency(), Some(Duration::from_millis(152)));
+        r.shown(5, at(400));
+        assert_eq!(r.latency(), Some(Duration::from_millis(320)));
+        assert_eq!(r.shown_per_second(), 3);
+        r.shown(5, at(1350));
+        assert_eq!(
+            r.shown_per_second(),
+            2,
+            "images older than a second drop out"
+        );
+    }
 
     #[test]
     fn the_frame_log_gives_mean_and_nearest_rank_p95() {
