@@ -473,3 +473,98 @@ fn a_profiled_window_logs_every_shown_frame() {
     assert!(dir.join("view.tiles.csv").exists());
     std::fs::remove_dir_all(&dir).ok();
 }
+
+/// Holds W for two seconds in the real window (X key events from `xdotool`, as a user's
+/// keyboard sends them) and returns the shown frames' files with their write times, and
+/// when the key went down and came up (seconds since the epoch).
+fn hold_w_in_the_window(dir: &Path) -> (Vec<(f64, PathBuf)>, f64, f64) {
+    let frames = dir.join("frames");
+    std::fs::create_dir_all(&frames).unwrap();
+    assert!(
+        Command::new("xdotool").arg("version").output().is_ok(),
+        "the held-key test sends key events with xdotool: apt-get install xdotool"
+    );
+    // Inside the private X server: the window, its first frames, the key held, the window
+    // closed. The times go to files the test reads.
+    let script = format!(
+        r#"{bin} view --scene meadow --width 320 --height 240 --threads 2 --frames-out {frames} &
+view=$!
+for i in $(seq 1 300); do [ -n "$(ls {frames})" ] && break; sleep 0.1; done
+sleep 1
+window=$(xdotool search --sync --onlyvisible --name sylva | head -1)
+xdotool windowactivate --sync "$window" 2>/dev/null; xdotool windowfocus --sync "$window"
+date +%s.%N > {dir}/down
+xdotool keydown --window "$window" w
+sleep 2
+xdotool keyup --window "$window" w
+date +%s.%N > {dir}/up
+sleep 0.5
+xdotool key --window "$window" Escape
+wait $view"#,
+        bin = env!("CARGO_BIN_EXE_sylva"),
+        frames = frames.display(),
+        dir = dir.display(),
+    );
+    let output = Command::new("xvfb-run")
+        .args(["-a", "-s", "-screen 0 640x480x24", "sh", "-c", &script])
+        .output()
+        .expect("xvfb-run runs (apt-get install xvfb xauth)");
+    assert!(
+        output.status.success(),
+        "{}",
+        String::from_utf8_lossy(&output.stderr)
+    );
+    let time = |name: &str| -> f64 {
+        let text = std::fs::read_to_string(dir.join(name)).unwrap();
+        text.trim().parse().unwrap()
+    };
+    let mut shown: Vec<(f64, PathBuf)> = std::fs::read_dir(&frames)
+        .unwrap()
+        .map(|entry| {
+            let path = entry.unwrap().path();
+            let written = std::fs::metadata(&path).unwrap().modified().unwrap();
+            let seconds = written
+                .duration_since(std::time::UNIX_EPOCH)
+                .unwrap()
+                .as_secs_f64();
+            (seconds, path)
+        })
+        .collect();
+    shown.sort_by(|a, b| a.0.total_cmp(&b.0));
+    (shown, time("down"), time("up"))
+}
+
+#[test]
+fn holding_a_movement_key_keeps_new_views_coming() {
+    let dir = temp_dir("held");
+    let (shown, down, up) = hold_w_in_the_window(&dir);
+    // Frames keep reaching the screen while the key is down (every one of them used to
+    // be given up for the next pose until the key came up), and they show the walk.
+    let before = shown.iter().rfind(|(t, _)| *t < down);
+    let held: Vec<&PathBuf> = shown
+        .iter()
+        .filter(|(t, _)| (down..=up).contains(t))
+        .map(|(_, path)| path)
+        .collect();
+    assert!(
+        held.len() >= 3,
+        "{} frames shown while W was held for {:.1} s",
+        held.len(),
+        up - down
+    );
+    let mean_difference = |a: &[u8], b: &[u8]| {
+        a.iter()
+            .zip(b)
+            .map(|(&p, &q)| f64::from(p.abs_diff(q)))
+            .sum::<f64>()
+            / a.len() as f64
+    };
+    let (at_rest, ..) = rgb(&before.expect("a frame before the key went down").1);
+    let (walked, ..) = rgb(held.last().unwrap());
+    let moved = mean_difference(&at_rest, &walked);
+    assert!(
+        moved > 12.0,
+        "the last held frame differs by only {moved:.1} levels a channel"
+    );
+    std::fs::remove_dir_all(&dir).ok();
+}

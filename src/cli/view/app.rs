@@ -20,6 +20,8 @@ pub(super) struct ScriptRun {
 
 pub(super) struct App {
     pub(super) live: LiveRender,
+    /// Images shown a second and input-to-image latency, for the HUD.
+    pub(super) responsiveness: Responsiveness,
     pub(super) saving: Arc<Saving>,
     /// The heads-up display (H toggles it).
     pub(super) hud: Option<Hud>,
@@ -132,7 +134,7 @@ impl App {
             },
         };
         self.record(step);
-        self.live.send(LiveCommand::Shared(action.to_bytes()))
+        self.send(LiveCommand::Shared(action.to_bytes()))
     }
 
     /// Records `step` with `--record`, at the pose last sent.
@@ -209,7 +211,15 @@ impl App {
     /// Sends a camera pose; its sequence number.
     pub(super) fn send_pose(&mut self, pose: Transform) -> Option<u64> {
         self.pose = pose;
-        self.live.send(LiveCommand::Pose(pose))
+        self.send(LiveCommand::Pose(pose))
+    }
+
+    /// Sends a command to the render thread, noting when (the HUD's latency); its
+    /// sequence number.
+    pub(super) fn send(&mut self, command: LiveCommand) -> Option<u64> {
+        let number = self.live.send(command)?;
+        self.responsiveness.sent(number, Instant::now());
+        Some(number)
     }
 
     /// The map panel as drawn now, when it is shown.
@@ -395,14 +405,13 @@ impl App {
                     ];
                     let mut command = command;
                     for action in actions.into_iter().flatten() {
-                        let Some(number) = self.live.send(LiveCommand::Shared(action.to_bytes()))
-                        else {
+                        let Some(number) = self.send(LiveCommand::Shared(action.to_bytes())) else {
                             return self.fail(event_loop, anyhow::anyhow!("the renderer stopped"));
                         };
                         command = number;
                     }
                     if let Some(path) = &step.save {
-                        let Some(number) = self.live.send(self.saving.command(Some(path.clone())))
+                        let Some(number) = self.send(self.saving.command(Some(path.clone())))
                         else {
                             return self.fail(event_loop, anyhow::anyhow!("the renderer stopped"));
                         };
@@ -447,7 +456,7 @@ impl App {
                 map.draw(&mut buffer, size.width as usize, &shown.map, shown.selected);
             }
             if let Some(hud) = self.hud.as_ref().filter(|_| !self.hud_hidden) {
-                let mut lines = hud.lines(shown, self.fly.speed);
+                let mut lines = hud.lines(shown, self.fly.speed, &self.responsiveness);
                 if let Some(status) = &self.status {
                     lines.push(format!("load failed: {status}"));
                 }

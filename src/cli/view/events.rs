@@ -39,6 +39,7 @@ impl ApplicationHandler<FrameReady> for App {
             );
         }
         if let Some(image) = self.live.take_latest() {
+            self.responsiveness.shown(image.applied, Instant::now());
             if let Some(writer) = &self.frames_out
                 && !writer.push(&image)
             {
@@ -95,7 +96,7 @@ impl ApplicationHandler<FrameReady> for App {
                             save: Some(self.saving.path.clone()),
                             ..ScriptStep::default()
                         });
-                        self.live.send(self.saving.command(None));
+                        self.send(self.saving.command(None));
                     }
                     (KeyCode::KeyZ | KeyCode::KeyY, ElementState::Pressed)
                         if self.modifiers.state().control_key() =>

@@ -14,17 +14,29 @@ pub(super) const HUD_TEXT: f32 = 14.0;
 
 impl Hud {
     /// What the HUD says about `shown`.
-    pub(super) fn lines(&self, shown: &ShownImage, speed: f32) -> Vec<String> {
+    pub(super) fn lines(
+        &self,
+        shown: &ShownImage,
+        speed: f32,
+        responsiveness: &Responsiveness,
+    ) -> Vec<String> {
         let ms = |d: Duration| d.as_secs_f64() * 1e3;
         let fps = 1.0 / shown.frame_time.as_secs_f64().max(1e-6);
         let memory =
             current_memory_bytes().map_or("?".to_string(), |b| format!("{:.0} MB", b as f64 / 1e6));
+        let latency = responsiveness
+            .latency()
+            .map_or("-".to_string(), |d| format!("{:.0} ms", ms(d)));
         vec![
             format!(
                 "{:.1} fps  {} spp  {:.2} M rays/s",
                 fps,
                 shown.frames,
                 shown.rays_per_second / 1e6
+            ),
+            format!(
+                "shown {} images/s  input to image {latency}",
+                responsiveness.shown_per_second()
             ),
             format!(
                 "render {:.0} ms  filter {:.1} ms  top level {:.1} ms (refit {:.1})  tone map {:.1} ms",

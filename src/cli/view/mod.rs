@@ -31,7 +31,9 @@ use std::time::Instant;
 use sylva::scenes::editor;
 use sylva::scenes::editor::EditorAction;
 use sylva::systems::cluster::Cluster;
-use sylva::systems::live::{LiveCommand, LiveRender, SharedEdits, ShownImage, serve_live};
+use sylva::systems::live::{
+    LiveCommand, LiveRender, Responsiveness, SharedEdits, ShownImage, serve_live,
+};
 use sylva::systems::profile::{FrameProfiler, ProfileLog};
 use sylva::systems::walkthrough::{
     FlyCamera, FlyInput, ScriptRecorder, ScriptStep, WalkthroughScript, overview_pose,
@@ -215,6 +217,7 @@ fn show(args: ViewArgs, node: &mut Node) -> Result<()> {
     let font = ab_glyph::FontRef::try_from_slice(dejavu::sans::regular())
         .map_err(|e| anyhow::anyhow!("the HUD font does not load: {e}"))?;
     let mut app = App {
+        responsiveness: Responsiveness::default(),
         live: loaded.live,
         saving: Arc::new(loaded.facts.saving),
         hud: Some(Hud {

@@ -59,9 +59,14 @@ fn the_hud_writes_its_lines_on_a_darkened_band_and_leaves_the_rest() {
         instances: 42,
         ..ShownImage::default()
     };
-    let lines = hud.lines(&shown, 2.5);
+    let mut responsiveness = Responsiveness::default();
+    let sent = Instant::now();
+    responsiveness.sent(1, sent);
+    responsiveness.shown(1, sent + Duration::from_millis(120));
+    let lines = hud.lines(&shown, 2.5, &responsiveness);
     assert!(lines[0].starts_with("4.0 fps  7 spp"), "{lines:?}");
-    assert!(lines[2].contains("42 instances") && lines[2].contains("1,234,567"));
+    assert_eq!(lines[1], "shown 1 images/s  input to image 120 ms");
+    assert!(lines[3].contains("42 instances") && lines[3].contains("1,234,567"));
     let grey = 0x0080_8080;
     let mut buffer = vec![grey; 320 * 200];
     hud.draw(&mut buffer, 320, 200, &lines);
