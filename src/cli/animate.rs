@@ -55,12 +55,8 @@ pub(crate) struct AnimateArgs {
     /// The wind that sways the plants (each on a damped spring sized by its height).
     #[arg(long, value_enum, value_name = "on|off", default_value = "on")]
     wind: Switch,
-    /// Light the scene with a latitude-longitude HDR environment map (.hdr or .exr).
-    #[arg(long, value_name = "FILE")]
-    env: Option<PathBuf>,
-    /// Virtual directional lights the environment map is discretised into.
-    #[arg(long, default_value_t = 1024, value_parser = clap::value_parser!(u32).range(1..=65536))]
-    lights: u32,
+    #[command(flatten)]
+    lighting: LightingArgs,
     /// Exposure in stops, applied before tone mapping (PNG only).
     #[arg(long, default_value_t = 0.0, allow_hyphen_values = true)]
     exposure: f32,
@@ -178,7 +174,7 @@ fn load(args: &AnimateArgs, pattern: &FramePattern) -> Result<Loaded> {
     let (mut scene, width, environment) = build_framed(
         &mut world,
         &args.scene,
-        (args.env.as_deref(), args.lights),
+        (args.lighting.env.as_deref(), args.lighting.lights),
         &Framing {
             size: (args.width, args.height),
             max_width: 16384,

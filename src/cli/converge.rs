@@ -2,6 +2,7 @@
 //! output directory), one progressive run per setting, then the CSV, the plot and the
 //! table.
 
+use super::LightingArgs;
 use super::cluster::{ClusterArgs, Node};
 use super::plot::plot_error_vs_time;
 use super::{SceneArgs, build_lit, hash_scene, init_tracing, parse_duration, scene_label};
@@ -33,12 +34,8 @@ pub(crate) struct ConvergeArgs {
     /// Render only the central FRACTION of the view (a crop, by narrowing the field of view).
     #[arg(long, default_value_t = 1.0, value_name = "FRACTION", allow_negative_numbers = true, value_parser = parse_fraction)]
     crop: f32,
-    /// Light with a latitude-longitude HDR map instead of the scene's sun and sky.
-    #[arg(long, value_name = "FILE")]
-    env: Option<PathBuf>,
-    /// Virtual lights the map is cut into.
-    #[arg(long, default_value_t = 1024, allow_negative_numbers = true, value_parser = clap::value_parser!(u32).range(1..=65536))]
-    lights: u32,
+    #[command(flatten)]
+    lighting: LightingArgs,
     /// Wall time each setting may refine for (e.g. 10s, 2m).
     #[arg(long, default_value = "10s", allow_hyphen_values = true, value_parser = parse_duration)]
     budget: Duration,
@@ -87,8 +84,12 @@ pub fn run(args: ConvergeArgs) -> Result<()> {
 /// Builds the world for `converge`; returns it and its camera.
 fn load(args: &ConvergeArgs) -> Result<(World, Entity)> {
     let mut world = World::new();
-    let (mut scene, _, environment) =
-        build_lit(&mut world, &args.scene, args.env.as_deref(), args.lights)?;
+    let (mut scene, _, environment) = build_lit(
+        &mut world,
+        &args.scene,
+        args.lighting.env.as_deref(),
+        args.lighting.lights,
+    )?;
     scene.camera.width = args.width;
     scene.camera.height = args.height;
     let half = (scene.camera.vertical_fov * 0.5).tan() * args.crop;
@@ -227,7 +228,12 @@ fn reference(
         ..Quality::still()
     };
     let mut hash = Fingerprint::new("sylva converge reference v2");
-    hash_scene(&mut hash, &args.scene, args.env.as_deref(), args.lights);
+    hash_scene(
+        &mut hash,
+        &args.scene,
+        args.lighting.env.as_deref(),
+        args.lighting.lights,
+    );
     hash.u32(args.width)
         .u32(args.height)
         .f32(args.crop)

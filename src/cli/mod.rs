@@ -24,6 +24,19 @@ use sylva::prelude::*;
 use sylva::scenes::SceneBuild;
 use tracing_subscriber::prelude::*;
 
+/// How a scene is lit: its own sun and sky, or an HDR map cut into virtual lights (the
+/// flags of every subcommand that renders).
+#[derive(clap::Args, Debug, Clone)]
+pub(crate) struct LightingArgs {
+    /// Light the scene with a latitude-longitude HDR environment map (.hdr or .exr)
+    /// instead of the scene's sun and sky.
+    #[arg(long, value_name = "FILE")]
+    pub(crate) env: Option<PathBuf>,
+    /// Virtual directional lights the environment map is discretised into (median cut).
+    #[arg(long, default_value_t = 1024, allow_negative_numbers = true, value_parser = clap::value_parser!(u32).range(1..=65536))]
+    pub(crate) lights: u32,
+}
+
 #[derive(Args, Clone, Debug)]
 pub(crate) struct SceneArgs {
     /// Built-in scene (meadow, forest, paper) or a TOML scene file (*.toml).

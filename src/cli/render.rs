@@ -115,13 +115,8 @@ pub(crate) struct RenderArgs {
     /// one uninterrupted run would give.
     #[arg(long, value_name = "FILE")]
     resume: Option<PathBuf>,
-    /// Light the scene with a latitude-longitude HDR environment map (.hdr or .exr)
-    /// instead of the scene's sun and sky.
-    #[arg(long, value_name = "FILE")]
-    env: Option<PathBuf>,
-    /// Virtual directional lights the environment map is discretised into (median cut).
-    #[arg(long, default_value_t = 1024, allow_negative_numbers = true, value_parser = clap::value_parser!(u32).range(1..=65536))]
-    lights: u32,
+    #[command(flatten)]
+    lighting: LightingArgs,
     /// Exposure in stops, applied before tone mapping (PNG only).
     #[arg(long, default_value_t = 0.0, allow_hyphen_values = true)]
     exposure: f32,
@@ -186,10 +181,11 @@ fn image_metadata(
         ),
         (
             "sylva.environment",
-            args.env
+            args.lighting
+                .env
                 .as_ref()
                 .map_or("scene sun and sky".to_string(), |p| {
-                    format!("{} ({} lights)", p.display(), args.lights)
+                    format!("{} ({} lights)", p.display(), args.lighting.lights)
                 }),
         ),
         ("sylva.exposure", args.exposure.to_string()),
@@ -229,7 +225,12 @@ fn quality(args: &RenderArgs) -> Quality {
 /// change the written image).
 fn checkpoint_fingerprint(args: &RenderArgs, width: u32, quality: &Quality) -> u64 {
     let mut hash = Fingerprint::new("sylva checkpoint v2");
-    hash_scene(&mut hash, &args.scene, args.env.as_deref(), args.lights);
+    hash_scene(
+        &mut hash,
+        &args.scene,
+        args.lighting.env.as_deref(),
+        args.lighting.lights,
+    );
     hash.u32(width).u32(args.height).u64(quality.fingerprint());
     hash.finish()
 }
@@ -263,7 +264,7 @@ fn load(args: &RenderArgs) -> Result<Loaded> {
     let (scene, width, environment) = build_framed(
         &mut world,
         &args.scene,
-        (args.env.as_deref(), args.lights),
+        (args.lighting.env.as_deref(), args.lighting.lights),
         &Framing {
             size: (args.width, args.height),
             max_width: 16384,

@@ -55,12 +55,8 @@ pub(crate) struct ViewArgs {
     /// Image height in pixels.
     #[arg(long, default_value_t = 480, value_parser = clap::value_parser!(u32).range(1..=8192))]
     height: u32,
-    /// Light the scene with a latitude-longitude HDR environment map (.hdr or .exr).
-    #[arg(long, value_name = "FILE")]
-    env: Option<PathBuf>,
-    /// Virtual directional lights the environment map is discretised into.
-    #[arg(long, default_value_t = 1024, value_parser = clap::value_parser!(u32).range(1..=65536))]
-    lights: u32,
+    #[command(flatten)]
+    lighting: LightingArgs,
     /// Exposure in stops, applied before tone mapping.
     #[arg(long, default_value_t = 0.0, allow_hyphen_values = true)]
     exposure: f32,
@@ -134,8 +130,8 @@ pub(crate) fn run(args: ViewArgs) -> Result<()> {
 fn serve(args: &ViewArgs, node: &mut Node) -> Result<()> {
     check_exposure(args.exposure)?;
     let settings = ViewSettings {
-        env: args.env.clone(),
-        lights: args.lights,
+        env: args.lighting.env.clone(),
+        lights: args.lighting.lights,
         exposure: args.exposure,
         max_frames: args.max_frames,
         save: args.save.clone(),
@@ -202,8 +198,8 @@ fn show(args: ViewArgs, node: &mut Node) -> Result<()> {
 
     let proxy = event_loop.create_proxy();
     let settings = Arc::new(ViewSettings {
-        env: args.env.clone(),
-        lights: args.lights,
+        env: args.lighting.env.clone(),
+        lights: args.lighting.lights,
         exposure: args.exposure,
         max_frames: args.max_frames,
         save: args.save.clone(),
