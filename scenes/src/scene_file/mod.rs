@@ -1,82 +1,8 @@
 //! TOML scene files: name a preset and override parts of it, or describe an ecosystem
-//! from scratch (terrain, layers with species, sun, sky, camera). Unknown keys are
-//! errors; every error names the file, the line and column, and the key.
-//!
-//! ```toml
-//! preset = "meadow"        # optional starting point
-//! seed = 7                 # optional (the CLI's --seed otherwise)
-//!
-//! [terrain]
-//! size = 150.0             # metres
-//! cells = 300              # per edge, two triangles each (≤ 2048)
-//! amplitude = 6.0
-//! wavelength = 60.0
-//! octaves = 6
-//! noise = "ridged"         # or "fbm"
-//!
-//! [[layer]]                # layers given here replace the preset's
-//! name = "grass"
-//! count = 2000
-//! scale = [0.8, 1.2]
-//! min_spacing = 0.5        # optional
-//! clustering = 0.3         # 0 … 1
-//! region = [-40, -40, 40, 40]
-//! sway = { stiffness = 2.0, damping = 1.5, inertia = 1.0 }  # optional factors on the
-//!                          # spring each plant's height gives (also per species)
-//!
-//! [[layer.species]]
-//! name = "tall grass"
-//! kind = "grass"           # grass, herb, low_shrub, high_shrub, low_tree, high_tree, large_tree
-//! height = 0.6
-//! triangles = 1000
-//! leaf = "blades"          # optional: blades, ellipse, lanceolate, lobed, compound, needles
-//! leaf_color = [0.3, 0.5, 0.15]   # optional, sRGB
-//! seed = 3                 # optional
-//! weight = 2.0             # optional
-//!
-//! [[layer.species]]
-//! name = "imported tree"
-//! gltf = "models/tree.glb" # relative to this file
-//!
-//! [sun]
-//! elevation = 40.0         # degrees
-//! azimuth = -50.0
-//! irradiance = [3.2, 3.0, 2.7]
-//!
-//! [wind]                   # optional: what the wind blows when it is on
-//! speed = 6.0              # m/s, 0 … 60
-//! direction = 90.0         # degrees from +Z towards +X it blows toward (default 90: +X)
-//! gustiness = 0.5          # optional: gusts as a fraction of the speed, 0 … 2
-//! gust_frequency = 0.3     # optional, Hz
-//! gust_wavelength = 25.0   # optional, metres between gust fronts
-//! turbulence = 0.4         # optional: gusts varying across the wind too, 0 … 2
-//! seed = 3                 # optional: the turbulence's pattern
-//!
-//! [sky]                    # the Preetham daylight model for the sun above …
-//! turbidity = 3.0
-//! # … or a gradient: zenith = [0.22, 0.42, 0.95], horizon = [0.75, 0.85, 1.0],
-//! # ground = [0.12, 0.11, 0.08]
-//!
-//! [camera]
-//! eye = [0.0, 45.0]        # x, z; the height is above the ground
-//! eye_height = 1.7
-//! target = [0.0, 0.0]
-//! target_height = 2.0
-//! fov = 55.0
-//! path_interpolation = "catmull_rom"   # optional, or "linear": how the path runs
-//!
-//! [[camera.path]]          # optional key frames of a flight for `sylva animate`
-//! time = 0.0               # seconds, increasing from key to key
-//! eye = [0.0, 45.0]        # as [camera]; eye_height, target_height, fov default to its
-//! target = [0.0, 0.0]      # or rotation = [x, y, z, w] (a unit quaternion)
-//!
-//! [[plant]]                # optional: every plant where it stands (what `sylva view`
-//! species = "tall grass"   # saves); the layers then give only the species
-//! layer = 0                # index into the layers
-//! translation = [1.5, 0.2, -3.0]
-//! rotation = [0.0, 0.38, 0.0, 0.92]   # unit quaternion x, y, z, w
-//! scale = [1.1, 1.1, 1.1]
-//! ```
+//! from scratch (terrain, layers with species, sun, sky, wind, camera, plants). Unknown
+//! keys are errors; every error names the file, the line and column, and the key. The
+//! format's reference, every key with an example, is `docs/scene-format.md` (a test
+//! parses its example and checks that it names every key the parser reads).
 
 mod document;
 mod tables;
