@@ -239,12 +239,11 @@ pub struct PlacedPlant {
     pub transform: Transform,
 }
 
-/// Names of the presets.
-pub const PRESETS: &[&str] = &["meadow", "forest", "paper"];
-
 /// `n` procedural species of `kind` with heights in `heights` and triangle budgets
 /// spread ±25 % around `triangles` (the mean stays `triangles`).
-fn procedural(
+/// `n` generated species of one kind named "PREFIX 1" … "PREFIX n": heights drawn from
+/// `heights`, triangle counts spread ±25 % about `triangles`, seeds drawn from `seed`.
+pub(crate) fn procedural(
     prefix: &str,
     kind: PlantKind,
     n: u32,
@@ -275,19 +274,6 @@ fn procedural(
             }
         })
         .collect()
-}
-
-fn layer(name: &str, species: Vec<SpeciesSpec>, count: u32) -> LayerSpec {
-    LayerSpec {
-        name: name.into(),
-        species,
-        count,
-        scale: (0.8, 1.2),
-        min_spacing: None,
-        clustering: 0.0,
-        region: None,
-        sway: SwaySpec::default(),
-    }
 }
 
 /// The sky of an ecosystem.
@@ -321,25 +307,11 @@ fn default_sun() -> SunSpec {
 }
 
 impl EcosystemSpec {
-    /// A preset by name.
-    pub fn preset(name: &str) -> Option<Self> {
-        match name {
-            "meadow" => Some(Self::meadow()),
-            "forest" => Some(Self::forest()),
-            "paper" => Some(Self::paper()),
-            _ => None,
-        }
-    }
-
-    /// The embedded default: a small meadow (200 m, 6,880 plants of 5 species), grass
-    /// dense in front of an eye-height camera.
-    pub fn meadow() -> Self {
-        let seed = 0x6d65_6164;
-        let grass = procedural("meadow grass", PlantKind::Grass, 2, (0.35, 0.55), 300, seed);
-        let herbs = procedural("meadow herb", PlantKind::Herb, 1, (0.3, 0.45), 600, seed);
-        let near = [-20.0, 10.0, 20.0, 50.0];
+    /// The starting point of a scene file that names no preset: the embedded meadow's
+    /// terrain, sun, sky and camera, no layers.
+    pub fn base() -> Self {
         Self {
-            name: "meadow".into(),
+            name: "scene".into(),
             terrain: TerrainParams {
                 size: 200.0,
                 cells: 400,
@@ -348,44 +320,7 @@ impl EcosystemSpec {
                 octaves: 6,
                 ridged: false,
             },
-            layers: vec![
-                LayerSpec {
-                    region: Some(near),
-                    ..layer("near haulm", [grass.clone(), herbs.clone()].concat(), 3000)
-                },
-                LayerSpec {
-                    region: Some([-70.0, -70.0, 70.0, 70.0]),
-                    clustering: 0.3,
-                    ..layer("higher haulm", [grass, herbs].concat(), 3000)
-                },
-                LayerSpec {
-                    region: Some([-70.0, -70.0, 70.0, 70.0]),
-                    clustering: 0.8,
-                    scale: (0.6, 1.4),
-                    ..layer(
-                        "shrubs",
-                        procedural(
-                            "meadow shrub",
-                            PlantKind::LowShrub,
-                            1,
-                            (0.8, 1.0),
-                            1500,
-                            seed,
-                        ),
-                        800,
-                    )
-                },
-                LayerSpec {
-                    region: Some([-70.0, -70.0, 70.0, 70.0]),
-                    min_spacing: Some(7.0),
-                    scale: (0.7, 1.3),
-                    ..layer(
-                        "trees",
-                        procedural("meadow tree", PlantKind::LowTree, 1, (5.0, 5.5), 8000, seed),
-                        80,
-                    )
-                },
-            ],
+            layers: Vec::new(),
             plants: None,
             wind: None,
             camera_path: None,
@@ -398,208 +333,6 @@ impl EcosystemSpec {
                 target: Vec2::ZERO,
                 target_height: 2.0,
                 fov: 55.0,
-            },
-        }
-    }
-
-    /// A medium forest: 10,000 plants of 19 species in the paper's six layers on
-    /// 120 m × 120 m.
-    pub fn forest() -> Self {
-        let seed = 0x666f_7265;
-        let haulm = [
-            procedural("forest grass", PlantKind::Grass, 3, (0.3, 0.7), 1000, seed),
-            procedural("forest herb", PlantKind::Herb, 1, (0.3, 0.5), 1000, seed),
-        ]
-        .concat();
-        Self {
-            name: "forest".into(),
-            terrain: TerrainParams {
-                size: 120.0,
-                cells: 400,
-                amplitude: 5.0,
-                wavelength: 60.0,
-                octaves: 6,
-                ridged: false,
-            },
-            layers: vec![
-                LayerSpec {
-                    clustering: 0.4,
-                    ..layer("higher haulm", haulm, 5500)
-                },
-                LayerSpec {
-                    clustering: 0.5,
-                    ..layer(
-                        "lower shrub",
-                        procedural(
-                            "forest low shrub",
-                            PlantKind::LowShrub,
-                            3,
-                            (0.5, 1.0),
-                            3000,
-                            seed,
-                        ),
-                        2600,
-                    )
-                },
-                LayerSpec {
-                    clustering: 0.6,
-                    ..layer(
-                        "higher shrub",
-                        procedural(
-                            "forest high shrub",
-                            PlantKind::HighShrub,
-                            3,
-                            (1.5, 3.5),
-                            10_000,
-                            seed,
-                        ),
-                        1200,
-                    )
-                },
-                layer(
-                    "lower tree",
-                    procedural(
-                        "forest low tree",
-                        PlantKind::LowTree,
-                        3,
-                        (4.0, 8.0),
-                        25_000,
-                        seed,
-                    ),
-                    450,
-                ),
-                layer(
-                    "higher tree",
-                    procedural(
-                        "forest high tree",
-                        PlantKind::HighTree,
-                        3,
-                        (10.0, 16.0),
-                        40_000,
-                        seed,
-                    ),
-                    200,
-                ),
-                layer(
-                    "overlap tree",
-                    procedural(
-                        "forest large tree",
-                        PlantKind::LargeTree,
-                        3,
-                        (18.0, 26.0),
-                        60_000,
-                        seed,
-                    ),
-                    50,
-                ),
-            ],
-            plants: None,
-            wind: None,
-            camera_path: None,
-            clear_radius: 2.0,
-            sun: Some(default_sun()),
-            sky: Some(default_sky()),
-            camera: CameraSpec {
-                eye: Vec2::new(-8.0, 62.0),
-                eye_height: 2.2,
-                target: Vec2::new(0.0, 20.0),
-                target_height: 4.0,
-                fov: 60.0,
-            },
-        }
-    }
-
-    /// The paper's ecosystem at full scale: 68 species and 365,041 plants in the six
-    /// layers of Table 1 on a 300 m × 300 m, 2 M-triangle height field.
-    pub fn paper() -> Self {
-        let seed = 0x7061_7065;
-        let haulm = [
-            procedural("haulm grass", PlantKind::Grass, 15, (0.3, 0.9), 1000, seed),
-            procedural("haulm herb", PlantKind::Herb, 5, (0.3, 0.7), 1000, seed),
-        ]
-        .concat();
-        let low_shrub = [
-            procedural("low shrub", PlantKind::LowShrub, 14, (0.4, 1.0), 5000, seed),
-            procedural("tall herb", PlantKind::Herb, 6, (0.6, 1.0), 5000, seed),
-        ]
-        .concat();
-        Self {
-            name: "paper".into(),
-            terrain: TerrainParams {
-                size: 300.0,
-                cells: 1000,
-                amplitude: 10.0,
-                wavelength: 120.0,
-                octaves: 7,
-                ridged: false,
-            },
-            layers: vec![
-                LayerSpec {
-                    clustering: 0.3,
-                    ..layer("higher haulm", haulm, 204_750)
-                },
-                LayerSpec {
-                    clustering: 0.5,
-                    ..layer("lower shrub", low_shrub, 144_091)
-                },
-                LayerSpec {
-                    clustering: 0.6,
-                    ..layer(
-                        "higher shrub",
-                        procedural(
-                            "high shrub",
-                            PlantKind::HighShrub,
-                            12,
-                            (1.5, 4.0),
-                            25_000,
-                            seed,
-                        ),
-                        10_464,
-                    )
-                },
-                layer(
-                    "lower tree",
-                    procedural("low tree", PlantKind::LowTree, 8, (4.0, 8.0), 50_000, seed),
-                    5_209,
-                ),
-                layer(
-                    "higher tree",
-                    procedural(
-                        "high tree",
-                        PlantKind::HighTree,
-                        5,
-                        (10.0, 18.0),
-                        75_000,
-                        seed,
-                    ),
-                    290,
-                ),
-                layer(
-                    "overlap tree",
-                    procedural(
-                        "large tree",
-                        PlantKind::LargeTree,
-                        3,
-                        (18.0, 30.0),
-                        100_000,
-                        seed,
-                    ),
-                    237,
-                ),
-            ],
-            plants: None,
-            wind: None,
-            camera_path: None,
-            clear_radius: 2.0,
-            sun: Some(default_sun()),
-            sky: Some(default_sky()),
-            // Above the canopy at the terrain's edge, looking across the landscape.
-            camera: CameraSpec {
-                eye: Vec2::new(-20.0, 148.0),
-                eye_height: 32.0,
-                target: Vec2::new(-5.0, 90.0),
-                target_height: 0.0,
-                fov: 50.0,
             },
         }
     }

@@ -12,6 +12,7 @@ pub mod environment;
 #[cfg(feature = "gltf")]
 pub mod gltf;
 pub mod placement;
+pub mod presets;
 pub mod random;
 pub mod scene_file;
 pub mod sky;
@@ -29,7 +30,7 @@ use sylva_engine::mesh::MeshError;
 use sylva_engine::shading::Shader;
 use sylva_engine::tlas::{InstanceDesc, InstanceRecord};
 
-pub use ecosystem::PRESETS as SCENE_NAMES;
+pub use presets::PRESETS as SCENE_NAMES;
 use terrain::HeightField;
 
 /// Why a scene could not be built.
@@ -256,7 +257,7 @@ pub fn build_scene(name: &str, seed: u64) -> Result<SceneBuild, SceneError> {
         let file = scene_file::SceneFile::load(std::path::Path::new(name))?;
         return ecosystem::build(&file.spec, file.seed.unwrap_or(seed));
     }
-    match ecosystem::EcosystemSpec::preset(name) {
+    match scene_file::preset(name) {
         Some(spec) => ecosystem::build(&spec, seed),
         None => Err(SceneError::UnknownScene { name: name.into() }),
     }

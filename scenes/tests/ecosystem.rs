@@ -5,7 +5,6 @@ use bevy_ecs::prelude::*;
 use std::path::{Path, PathBuf};
 use sylva_engine::components::{Instance, Layer, Transform};
 use sylva_engine::tlas::TopLevel;
-use sylva_scenes::ecosystem::EcosystemSpec;
 use sylva_scenes::{Terrain, build_scene, move_plant, plant_at, spawn};
 use sylva_systems::{TopLevelState, frame_schedule, init_render_world};
 
@@ -131,7 +130,7 @@ target = [0, 0]
 
 #[test]
 fn plants_are_spawned_moved_and_despawned_one_by_one() {
-    let mut spec = EcosystemSpec::meadow();
+    let mut spec = sylva_scenes::scene_file::preset("meadow").unwrap();
     spec.terrain.cells = 20;
     for layer in &mut spec.layers {
         layer.count = 3;

@@ -41,7 +41,11 @@ fn the_reference_example_parses() {
     assert_eq!(file.seed, Some(7));
     assert_eq!(file.spec.name, "my meadow");
     assert_eq!(file.spec.layers.len(), 1);
-    assert_eq!(file.spec.layers[0].species.len(), 2);
+    assert_eq!(
+        file.spec.layers[0].species.len(),
+        5,
+        "two species and three variants"
+    );
     assert!(file.spec.wind.is_some() && file.spec.camera_path.is_some());
     assert_eq!(file.spec.plants.as_ref().map(Vec::len), Some(1));
 }
@@ -65,4 +69,58 @@ fn the_reference_names_every_key_the_parser_reads() {
         missing.is_empty(),
         "keys without a word in the reference: {missing:?}"
     );
+}
+
+#[test]
+fn every_built_in_preset_is_a_scene_file_that_parses() {
+    for &name in sylva_scenes::SCENE_NAMES {
+        let path = Path::new(env!("CARGO_MANIFEST_DIR")).join(format!("files/{name}.toml"));
+        let file = SceneFile::load(&path).unwrap_or_else(|e| panic!("{e}"));
+        assert_eq!(file.spec.name, name);
+        assert_eq!(Some(file.spec), sylva_scenes::scene_file::preset(name));
+    }
+    assert_eq!(sylva_scenes::scene_file::preset("moor"), None);
+}
+
+#[test]
+fn a_height_range_and_variants_go_together() {
+    let file = |species: &str| {
+        format!(
+            "[[layer]]\nname = \"l\"\ncount = 1\n[[layer.species]]\nname = \"s\"\nkind = \"herb\"\n{species}"
+        )
+    };
+    let error = |species: &str| {
+        SceneFile::parse(&file(species), Path::new("v.toml"))
+            .err()
+            .map(|e| e.to_string())
+            .unwrap_or_default()
+    };
+    let range_alone = error("height = [0.3, 0.5]\n");
+    assert!(
+        range_alone.contains("layer[0].species[0].height") && range_alone.contains("variants"),
+        "{range_alone}"
+    );
+    let variants_alone = error("variants = 3\nheight = 0.4\n");
+    assert!(
+        variants_alone.contains("layer[0].species[0].height"),
+        "{variants_alone}"
+    );
+    let no_height = error("variants = 3\n");
+    assert!(
+        no_height.contains("layer[0].species[0].variants"),
+        "{no_height}"
+    );
+    let backwards = error("variants = 3\nheight = [0.5, 0.3]\n");
+    assert!(backwards.contains("low ≤ high"), "{backwards}");
+    let family = SceneFile::parse(
+        &file("variants = 3\nheight = [0.3, 0.5]\n"),
+        Path::new("v.toml"),
+    )
+    .unwrap();
+    let names: Vec<&str> = family.spec.layers[0]
+        .species
+        .iter()
+        .map(|s| s.name.as_str())
+        .collect();
+    assert_eq!(names, ["s 1", "s 2", "s 3"]);
 }

@@ -78,8 +78,9 @@ pub(super) struct SwayDoc {
 pub(super) struct SpeciesDoc {
     pub(super) name: Spanned<String>,
     pub(super) kind: Option<Spanned<String>>,
-    pub(super) height: Option<Spanned<f32>>,
+    pub(super) height: Option<Spanned<HeightDoc>>,
     pub(super) triangles: Option<Spanned<u32>>,
+    pub(super) variants: Option<Spanned<u32>>,
     pub(super) leaf: Option<Spanned<String>>,
     pub(super) leaf_color: Option<Spanned<[f32; 3]>>,
     pub(super) seed: Option<u64>,
@@ -127,4 +128,13 @@ pub(super) struct CameraKeyDoc {
     pub(super) target_height: Option<Spanned<f32>>,
     pub(super) rotation: Option<[f32; 4]>,
     pub(super) fov: Option<Spanned<f32>>,
+}
+
+/// A species' height: one value, or with `variants` the range the variants' heights are
+/// drawn from.
+#[derive(Deserialize, Clone, Copy)]
+#[serde(untagged)]
+pub(super) enum HeightDoc {
+    One(f32),
+    Range([f32; 2]),
 }

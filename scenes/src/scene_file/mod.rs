@@ -13,9 +13,10 @@ use document::*;
 use tables::*;
 
 use crate::ecosystem::{
-    CameraAim, CameraKeySpec, CameraPathSpec, CameraSpec, EcosystemSpec, LayerSpec, PRESETS,
-    PlacedPlant, SkySpec, SpeciesSource, SpeciesSpec, SunSpec, SwaySpec,
+    CameraAim, CameraKeySpec, CameraPathSpec, CameraSpec, EcosystemSpec, LayerSpec, PlacedPlant,
+    SkySpec, SpeciesSource, SpeciesSpec, SunSpec, SwaySpec,
 };
+use crate::presets::{self, PRESETS};
 use crate::species::{LeafShape, PlantKind};
 use crate::terrain::TerrainParams;
 use glam::{Vec2, Vec3};
@@ -163,7 +164,7 @@ impl SceneFile {
             message: e.message().trim().to_string(),
         })?;
         let mut spec = match &doc.preset {
-            Some(name) => EcosystemSpec::preset(name.get_ref()).ok_or_else(|| {
+            Some(name) => preset(name.get_ref()).ok_or_else(|| {
                 cx.error(
                     Some(name.span()),
                     "preset",
@@ -174,11 +175,7 @@ impl SceneFile {
                     ),
                 )
             })?,
-            None => {
-                let mut empty = EcosystemSpec::meadow();
-                empty.layers.clear();
-                empty
-            }
+            None => EcosystemSpec::base(),
         };
         spec.name = doc.name.clone().unwrap_or_else(|| {
             path.file_stem()
@@ -217,4 +214,13 @@ impl SceneFile {
             seed: doc.seed,
         })
     }
+}
+
+/// A built-in ecosystem by name (`meadow`, `forest`, `paper`): its embedded scene file,
+/// parsed.
+pub fn preset(name: &str) -> Option<EcosystemSpec> {
+    let text = presets::text(name)?;
+    let file = SceneFile::parse(text, Path::new(&format!("{name}.toml")))
+        .unwrap_or_else(|e| panic!("the built-in preset does not parse (a test parses it): {e}"));
+    Some(file.spec)
 }

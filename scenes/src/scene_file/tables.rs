@@ -368,7 +368,8 @@ pub(super) fn layer(cx: &Context, doc: &LayerDoc, i: usize) -> Result<LayerSpec,
         .iter()
         .enumerate()
         .map(|(j, s)| species(cx, s, &format!("layer[{i}].species[{j}]")))
-        .collect::<Result<_, _>>()?;
+        .collect::<Result<Vec<_>, _>>()?
+        .concat();
     Ok(LayerSpec {
         name: doc.name.clone(),
         species,
@@ -412,11 +413,14 @@ pub(super) fn sway(
     })
 }
 
+/// A `[[layer.species]]` table: one species, or with `variants = N` the N generated
+/// species of a family (heights drawn from the `height` range, triangle counts spread
+/// ±25 % about `triangles`, each its own seed; named "NAME 1" … "NAME N").
 pub(super) fn species(
     cx: &Context,
     doc: &SpeciesDoc,
     key: &str,
-) -> Result<SpeciesSpec, SceneFileError> {
+) -> Result<Vec<SpeciesSpec>, SceneFileError> {
     let k = |f: &str| format!("{key}.{f}");
     let sway = sway(cx, &doc.sway, &k("sway"))?;
     let weight = doc
@@ -434,15 +438,22 @@ pub(super) fn species(
                 "a species comes either from `gltf` or from `kind`, not both".into(),
             ));
         }
+        if let Some(variants) = &doc.variants {
+            return Err(cx.error(
+                Some(variants.span()),
+                &k("variants"),
+                "variants are generated: a glTF species has none".into(),
+            ));
+        }
         let base = cx.path.parent().unwrap_or(Path::new("."));
-        return Ok(SpeciesSpec {
+        return Ok(vec![SpeciesSpec {
             name,
             source: SpeciesSource::Gltf {
                 path: base.join(file.get_ref()),
             },
             weight,
             sway,
-        });
+        }]);
     }
     let Some(kind_name) = &doc.kind else {
         return Err(cx.error(
@@ -487,35 +498,96 @@ pub(super) fn species(
                 .map(|c| c.map(srgb_to_linear))
         })
         .transpose()?;
-    Ok(SpeciesSpec {
-        name,
-        source: SpeciesSource::Procedural {
-            kind,
-            height: doc
-                .height
-                .as_ref()
-                .map(|v| cx.check(v, &k("height"), 0.01, 500.0))
-                .transpose()?
-                .unwrap_or(kind.typical_height()),
-            triangles: doc
-                .triangles
-                .as_ref()
-                .map(|v| cx.check(v, &k("triangles"), 16, 2_000_000))
-                .transpose()?
-                .unwrap_or(2000),
-            leaf_shape,
-            leaf_color,
-            seed: doc.seed.unwrap_or_else(|| {
-                // Stable per name, so reordering species does not change them.
-                doc.name
-                    .get_ref()
-                    .bytes()
-                    .fold(0xcbf2_9ce4_8422_2325u64, |h, b| {
-                        (h ^ b as u64).wrapping_mul(0x1000_0000_01b3)
-                    })
-            }),
-        },
-        weight,
-        sway,
-    })
+    let triangles = doc
+        .triangles
+        .as_ref()
+        .map(|v| cx.check(v, &k("triangles"), 16, 2_000_000))
+        .transpose()?
+        .unwrap_or(2000);
+    let seed = doc.seed.unwrap_or_else(|| {
+        // Stable per name, so reordering species does not change them.
+        doc.name
+            .get_ref()
+            .bytes()
+            .fold(0xcbf2_9ce4_8422_2325u64, |h, b| {
+                (h ^ b as u64).wrapping_mul(0x1000_0000_01b3)
+            })
+    });
+    let height = |h: f32, span| cx.check(&Spanned::new(span, h), &k("height"), 0.01, 500.0);
+    let specs = match (&doc.variants, &doc.height) {
+        (Some(variants), Some(range)) => {
+            let n = cx.check(variants, &k("variants"), 1, 1000)?;
+            let HeightDoc::Range([low, high]) = *range.get_ref() else {
+                return Err(cx.error(
+                    Some(range.span()),
+                    &k("height"),
+                    "variants draw their heights from a range: give height = [low, high]".into(),
+                ));
+            };
+            let (low, high) = (height(low, range.span())?, height(high, range.span())?);
+            if low > high {
+                return Err(cx.error(
+                    Some(range.span()),
+                    &k("height"),
+                    format!("[{low}, {high}] must satisfy low ≤ high"),
+                ));
+            }
+            crate::ecosystem::procedural(&name, kind, n, (low, high), triangles, seed)
+        }
+        (Some(variants), None) => {
+            return Err(cx.error(
+                Some(variants.span()),
+                &k("variants"),
+                "variants draw their heights from a range: give height = [low, high]".into(),
+            ));
+        }
+        (None, height_doc) => {
+            let height = match height_doc {
+                None => kind.typical_height(),
+                Some(h) => match *h.get_ref() {
+                    HeightDoc::One(v) => height(v, h.span())?,
+                    HeightDoc::Range(_) => {
+                        return Err(cx.error(
+                            Some(h.span()),
+                            &k("height"),
+                            "a height range is for a family of species: give `variants` too".into(),
+                        ));
+                    }
+                },
+            };
+            vec![SpeciesSpec {
+                name,
+                source: SpeciesSource::Procedural {
+                    kind,
+                    height,
+                    triangles,
+                    leaf_shape: None,
+                    leaf_color: None,
+                    seed,
+                },
+                weight: 1.0,
+                sway: SwaySpec::default(),
+            }]
+        }
+    };
+    // The table's leaf, colour, weight and sway hold for every variant.
+    Ok(specs
+        .into_iter()
+        .map(|mut spec| {
+            if let SpeciesSource::Procedural {
+                leaf_shape: shape,
+                leaf_color: color,
+                ..
+            } = &mut spec.source
+            {
+                *shape = leaf_shape;
+                *color = leaf_color;
+            }
+            SpeciesSpec {
+                weight,
+                sway,
+                ..spec
+            }
+        })
+        .collect())
 }

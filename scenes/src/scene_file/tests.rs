@@ -41,7 +41,7 @@ fn a_preset_with_overrides() {
     assert_eq!(file.seed, Some(9));
     assert_eq!(file.spec.terrain.cells, 50);
     assert!(file.spec.terrain.ridged);
-    assert_eq!(file.spec.layers, EcosystemSpec::forest().layers);
+    assert_eq!(file.spec.layers, preset("forest").unwrap().layers);
     assert_eq!(file.spec.name, "my");
 }
 
