@@ -1,6 +1,8 @@
 //! Embedding tests: Sylva's stages installed into a program's own schedule, with only the
 //! stages a scene needs, on the program's thread pool, read in place by its systems.
 
+mod common;
+
 use bevy_ecs::prelude::*;
 use glam::{Vec2, Vec3};
 use std::collections::{BTreeSet, HashSet};
@@ -12,7 +14,7 @@ use sylva_engine::discontinuity::DiscontinuityFilter;
 use sylva_engine::environment::{EnvironmentLight, EnvironmentMap};
 use sylva_engine::film::Film;
 use sylva_engine::geometry::{Geometry, GeometryLibrary};
-use sylva_engine::light::{DirectionalLight, SkyLight};
+
 use sylva_engine::mesh::TriangleMesh;
 use sylva_engine::render::FramePlan;
 use sylva_engine::shading::{Shader, ShaderId};
@@ -51,11 +53,7 @@ fn spawn_scene(world: &mut World) -> (Vec<Entity>, Entity) {
             world.spawn((t, Instance { geometry: leaf })).id()
         })
         .collect();
-    world.spawn(DirectionalLight {
-        direction: Vec3::new(0.3, 1.0, 0.2),
-        irradiance: Vec3::splat(3.0),
-    });
-    world.spawn(SkyLight::constant(Vec3::splat(0.5)));
+    common::spawn_sun_and_sky(world);
     let camera = world
         .spawn((
             Camera {

@@ -2,6 +2,8 @@
 //! produce frames (each showing a newer pose), and a refining frame is still given up
 //! for a new pose.
 
+mod common;
+
 use bevy_ecs::prelude::*;
 use glam::{Vec2, Vec3};
 use std::time::{Duration, Instant};
@@ -9,7 +11,7 @@ use sylva_engine::bvh::BuildParams;
 use sylva_engine::camera::Camera;
 use sylva_engine::components::{Instance, Transform};
 use sylva_engine::geometry::{Geometry, GeometryLibrary};
-use sylva_engine::light::{DirectionalLight, SkyLight};
+
 use sylva_engine::mesh::TriangleMesh;
 use sylva_engine::shading::{Shader, ShaderId};
 use sylva_systems::init_render_world;
@@ -55,11 +57,7 @@ fn world_with_camera() -> (World, Entity) {
     world.insert_resource(library);
     world.spawn(Shader::color(ShaderId(0), Vec3::splat(0.6)));
     world.spawn((Transform::IDENTITY, Instance { geometry }));
-    world.spawn(DirectionalLight {
-        direction: Vec3::new(0.3, 1.0, 0.2),
-        irradiance: Vec3::splat(3.0),
-    });
-    world.spawn(SkyLight::constant(Vec3::splat(0.5)));
+    common::spawn_sun_and_sky(&mut world);
     let camera = world
         .spawn((
             Camera {

@@ -1,5 +1,7 @@
 //! Schedule tests: spawn a small world, run the frame schedule, assert on what ran.
 
+mod common;
+
 use bevy_ecs::prelude::*;
 use glam::{Vec2, Vec3};
 use std::collections::HashSet;
@@ -9,7 +11,7 @@ use sylva_engine::camera::Camera;
 use sylva_engine::components::{Hidden, Instance, Transform};
 use sylva_engine::film::Film;
 use sylva_engine::geometry::{Geometry, GeometryLibrary};
-use sylva_engine::light::{DirectionalLight, LightSet, SkyLight};
+use sylva_engine::light::LightSet;
 use sylva_engine::mesh::TriangleMesh;
 use sylva_engine::shading::{Shader, ShaderId};
 use sylva_systems::*;
@@ -62,11 +64,7 @@ fn test_world(threads: usize) -> TestWorld {
             world.spawn((t, Instance { geometry: leaf })).id()
         })
         .collect();
-    world.spawn(DirectionalLight {
-        direction: Vec3::new(0.3, 1.0, 0.2),
-        irradiance: Vec3::splat(3.0),
-    });
-    world.spawn(SkyLight::constant(Vec3::splat(0.5)));
+    common::spawn_sun_and_sky(&mut world);
     let camera = world
         .spawn((
             Camera {
