@@ -568,3 +568,38 @@ fn holding_a_movement_key_keeps_new_views_coming() {
     );
     std::fs::remove_dir_all(&dir).ok();
 }
+
+#[test]
+fn a_script_holds_a_key_and_counts_the_frames_shown_meanwhile() {
+    let dir = temp_dir("hold");
+    let (start, walked) = (dir.join("start.png"), dir.join("walked.png"));
+    let script = dir.join("hold.toml");
+    std::fs::write(
+        &script,
+        format!(
+            "[[step]]\nframes = 1\nscreenshot = {:?}\n\n[[step]]\nhold = \"w\"\nseconds = 1.5\nscreenshot = {:?}\nquit = true\n",
+            start.to_str().unwrap(),
+            walked.to_str().unwrap()
+        ),
+    )
+    .unwrap();
+    let run = run_script(&script, &[]);
+    let stdout = String::from_utf8_lossy(&run.stdout);
+    let line = stdout
+        .lines()
+        .find(|l| l.contains("held keys:"))
+        .unwrap_or_else(|| panic!("no held-keys line in {stdout}"));
+    let frames: u32 = line
+        .split("held keys: ")
+        .nth(1)
+        .and_then(|rest| rest.split_whitespace().next())
+        .and_then(|n| n.parse().ok())
+        .unwrap_or_else(|| panic!("{line}"));
+    assert!(frames >= 3, "{line}");
+    assert!(line.contains("in 1.5 s"), "{line}");
+    // The key moved the camera: the view after the hold is another one.
+    let (before, ..) = rgb(&start);
+    let (after, ..) = rgb(&walked);
+    assert!(changed_pixels(&before, &after) > 96 * 72 / 2);
+    std::fs::remove_dir_all(&dir).ok();
+}

@@ -185,6 +185,15 @@ pub struct ScriptStep {
     /// Save the edited ecosystem as a scene file here (after this step's edits).
     #[serde(skip_serializing_if = "Option::is_none")]
     pub save: Option<std::path::PathBuf>,
+    /// Hold a movement key for `seconds` (default 2), as a user does: `w`, `a`, `s`,
+    /// `d` (forward, left, back, right), `q`, `e` (down, up) or an arrow (`up`, `down`,
+    /// `left`, `right`); the camera flies at the window's speed meanwhile and the frames
+    /// shown are counted (the walkthrough benchmark's continuous motion).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub hold: Option<String>,
+    /// How long `hold` holds its key, in seconds.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub seconds: Option<f32>,
     /// Save the shown image (PNG) once the frames are there.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub screenshot: Option<std::path::PathBuf>,
@@ -192,6 +201,9 @@ pub struct ScriptStep {
     #[serde(default, skip_serializing_if = "std::ops::Not::not")]
     pub quit: bool,
 }
+
+/// The keys a script's `hold` step can hold: the window's movement keys.
+pub const HOLDABLE_KEYS: [&str; 10] = ["w", "a", "s", "d", "q", "e", "up", "down", "left", "right"];
 
 /// A scripted walkthrough: steps run in order, each after the previous one's frames.
 #[derive(Clone, Debug, Default, PartialEq, serde::Deserialize, serde::Serialize)]
@@ -231,6 +243,27 @@ impl WalkthroughScript {
             }
             if step.frames == Some(0) {
                 return Err(format!("step {}: frames must be at least 1", i + 1));
+            }
+            if let Some(key) = &step.hold
+                && !HOLDABLE_KEYS.contains(&key.as_str())
+            {
+                return Err(format!(
+                    "step {}: hold = {key:?} is not a movement key (expected one of {})",
+                    i + 1,
+                    HOLDABLE_KEYS.join(", ")
+                ));
+            }
+            match (&step.hold, step.seconds) {
+                (None, Some(_)) => {
+                    return Err(format!("step {}: seconds goes with hold", i + 1));
+                }
+                (_, Some(t)) if !(t > 0.0 && t <= 600.0) => {
+                    return Err(format!(
+                        "step {}: seconds must be in (0, 600], not {t}",
+                        i + 1
+                    ));
+                }
+                _ => {}
             }
         }
         Ok(script)
@@ -329,6 +362,17 @@ impl ScriptRecorder {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn a_hold_step_names_a_movement_key_and_a_time() {
+        let script = WalkthroughScript::parse("[[step]]\nhold = \"w\"\nseconds = 2.5\n").unwrap();
+        assert_eq!(script.steps[0].hold.as_deref(), Some("w"));
+        assert_eq!(script.steps[0].seconds, Some(2.5));
+        let error = |text: &str| WalkthroughScript::parse(text).unwrap_err();
+        assert!(error("[[step]]\nhold = \"x\"\n").contains("not a movement key"));
+        assert!(error("[[step]]\nseconds = 1\n").contains("seconds goes with hold"));
+        assert!(error("[[step]]\nhold = \"w\"\nseconds = 0\n").contains("seconds must be"));
+    }
 
     fn close(a: Vec3, b: Vec3) -> bool {
         (a - b).length() < 1e-4

@@ -16,6 +16,38 @@ pub(super) struct ScriptRun {
     pub(super) started: Instant,
     /// Each finished step: its frames and the time they took to show.
     pub(super) finished: Vec<(u32, Duration)>,
+    /// A `hold` step in progress: its index, the key held and when it comes up.
+    pub(super) holding: Option<(usize, KeyCode, Instant)>,
+    /// What the `hold` steps saw: frames shown while a key was held, for how long, and
+    /// the input-to-image latency of each of those frames that showed new input.
+    pub(super) held: HeldKeys,
+}
+
+/// What a script's held keys saw (the walkthrough benchmark's continuous motion).
+#[derive(Default)]
+pub(super) struct HeldKeys {
+    pub(super) frames: u32,
+    pub(super) seconds: f64,
+    pub(super) latencies: Vec<Duration>,
+    /// The newest command a frame shown while holding reflected.
+    pub(super) applied: u64,
+}
+
+/// The window's key for a script's `hold` name (one of `walkthrough::HOLDABLE_KEYS`).
+pub(super) fn holdable_key(name: &str) -> Option<KeyCode> {
+    Some(match name {
+        "w" => KeyCode::KeyW,
+        "a" => KeyCode::KeyA,
+        "s" => KeyCode::KeyS,
+        "d" => KeyCode::KeyD,
+        "q" => KeyCode::KeyQ,
+        "e" => KeyCode::KeyE,
+        "up" => KeyCode::ArrowUp,
+        "down" => KeyCode::ArrowDown,
+        "left" => KeyCode::ArrowLeft,
+        "right" => KeyCode::ArrowRight,
+        _ => return None,
+    })
 }
 
 pub(super) struct App {
@@ -330,12 +362,54 @@ impl App {
         Ok(())
     }
 
+    /// Lets go of a script's held key once its time is up; the step then waits for its
+    /// frames at the pose the walk reached.
+    pub(super) fn end_hold(&mut self, event_loop: &ActiveEventLoop, now: Instant) {
+        let Some(script) = &mut self.script else {
+            return;
+        };
+        let Some((index, key, until)) = script.holding else {
+            return;
+        };
+        if now < until {
+            return;
+        }
+        script.holding = None;
+        let frames = script.steps[index].frames.unwrap_or(1);
+        self.held.remove(&key);
+        // The last pose the walk sent: the step waits for a frame that shows it.
+        let command = self.live.last_sent();
+        if let Some(script) = &mut self.script {
+            script.waiting = Some((index, command, frames));
+            script.started = now;
+        }
+        self.advance_script(event_loop);
+    }
+
+    /// Counts a frame shown while a script holds a key (and its latency when it shows
+    /// new input).
+    pub(super) fn note_held_frame(&mut self, applied: u64) {
+        let latency = self.responsiveness.latency();
+        let Some(script) = self.script.as_mut().filter(|s| s.holding.is_some()) else {
+            return;
+        };
+        script.held.frames += 1;
+        if applied > script.held.applied {
+            script.held.applied = applied;
+            script.held.latencies.extend(latency);
+        }
+    }
+
     /// Starts the script's next step, or finishes a step whose frames are shown.
     pub(super) fn advance_script(&mut self, event_loop: &ActiveEventLoop) {
         loop {
             let Some(script) = &mut self.script else {
                 return;
             };
+            if script.holding.is_some() {
+                // A held key comes up in `end_hold`, on the event loop's clock.
+                return;
+            }
             match script.waiting {
                 Some((index, command, frames)) => {
                     let Some(shown) = &self.shown else { return };
@@ -416,6 +490,29 @@ impl App {
                             return self.fail(event_loop, anyhow::anyhow!("the renderer stopped"));
                         };
                         command = number;
+                    }
+                    if let Some(name) = &step.hold {
+                        let Some(key) = holdable_key(name) else {
+                            return self.fail(
+                                event_loop,
+                                anyhow::anyhow!(
+                                    "step {}: hold = {name:?} is not a movement key",
+                                    index + 1
+                                ),
+                            );
+                        };
+                        self.held.insert(key);
+                        let seconds = step.seconds.unwrap_or(2.0);
+                        if let Some(script) = &mut self.script {
+                            script.holding = Some((
+                                index,
+                                key,
+                                Instant::now() + Duration::from_secs_f32(seconds),
+                            ));
+                            script.held.seconds += f64::from(seconds);
+                            script.held.applied = self.live.last_sent();
+                        }
+                        return;
                     }
                     if let Some(script) = &mut self.script {
                         script.waiting = Some((index, command, step.frames.unwrap_or(1)));

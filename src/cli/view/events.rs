@@ -40,6 +40,7 @@ impl ApplicationHandler<FrameReady> for App {
         }
         if let Some(image) = self.live.take_latest() {
             self.responsiveness.shown(image.applied, Instant::now());
+            self.note_held_frame(image.applied);
             if let Some(writer) = &self.frames_out
                 && !writer.push(&image)
             {
@@ -246,6 +247,7 @@ impl ApplicationHandler<FrameReady> for App {
 
     fn about_to_wait(&mut self, event_loop: &ActiveEventLoop) {
         let now = Instant::now();
+        self.end_hold(event_loop, now);
         let seconds = now.duration_since(self.last_step).as_secs_f32().min(0.1);
         self.last_step = now;
         let input = self.input();

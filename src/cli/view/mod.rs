@@ -19,7 +19,7 @@ mod tests;
 use super::cluster::{ClusterArgs, Node};
 use super::profile::{finish_profile, open_profile};
 use super::*;
-use app::{App, ScriptRun};
+use app::{App, HeldKeys, ScriptRun};
 use frames::FrameWriter;
 use hud::Hud;
 use scene::{ViewSettings, build_scene, start_scene};
@@ -244,6 +244,8 @@ fn show(args: ViewArgs, node: &mut Node) -> Result<()> {
             waiting: None,
             started: Instant::now(),
             finished: Vec::new(),
+            holding: None,
+            held: HeldKeys::default(),
         }),
         screenshots: 0,
         error: None,
@@ -286,6 +288,9 @@ fn show(args: ViewArgs, node: &mut Node) -> Result<()> {
             "{}",
             walkthrough_summary(&app.label, &app.live.frame_log(), &script.finished)
         );
+        if script.held.seconds > 0.0 {
+            println!("{}", held_keys_summary(&script.held));
+        }
     }
     if let (Some(profile), Some(path)) = (&profile, &args.profile) {
         let mut log = profile.lock().unwrap_or_else(PoisonError::into_inner);
@@ -352,5 +357,29 @@ fn walkthrough_summary(
         spread(moves.clone()),
         if rests.is_empty() { "" } else { "; " },
         rests.join(", ")
+    )
+}
+
+/// The walkthrough benchmark's line for held keys: frames shown while a key was held,
+/// their rate, and the input-to-image latency of those that showed new input.
+fn held_keys_summary(held: &HeldKeys) -> String {
+    use sylva::systems::live::FrameLog;
+    let latency = FrameLog {
+        frame_times: held.latencies.clone(),
+        cancelled: 0,
+    }
+    .mean_and_p95()
+    .map_or("none".to_string(), |(mean, p95)| {
+        format!(
+            "mean {:.0} ms, p95 {:.0} ms",
+            mean.as_secs_f64() * 1e3,
+            p95.as_secs_f64() * 1e3
+        )
+    });
+    format!(
+        "  held keys: {} frames shown in {:.1} s ({:.1} a second), input to image {latency}",
+        held.frames,
+        held.seconds,
+        f64::from(held.frames) / held.seconds
     )
 }
