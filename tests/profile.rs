@@ -203,3 +203,43 @@ fn bad_profile_paths_and_files_are_refused_by_name() {
     );
     std::fs::remove_dir_all(dir).ok();
 }
+
+#[test]
+fn adaptive_transparency_covers_only_the_first_frames_of_an_accumulation() {
+    let dir = temp_dir("fade");
+    let csv = dir.join("run.csv");
+    let image = dir.join("image.png");
+    ok(&sylva(
+        &[
+            "render",
+            "--width",
+            "64",
+            "--height",
+            "48",
+            "--frames",
+            "18",
+            "--preset",
+            "interactive",
+            "--threads",
+            "2",
+            "--profile",
+        ],
+        &[&csv, Path::new("--out"), &image],
+    ));
+    let text = std::fs::read_to_string(&csv).unwrap();
+    let mut lines = text.lines();
+    let header: Vec<&str> = lines.next().unwrap().split(',').collect();
+    let column = header
+        .iter()
+        .position(|&h| h == "holes_made_opaque")
+        .expect("a holes_made_opaque column");
+    let opaque: Vec<u64> = lines
+        .filter(|l| !l.is_empty())
+        .map(|l| l.split(',').nth(column).unwrap().parse().unwrap())
+        .collect();
+    assert_eq!(opaque.len(), 18, "{opaque:?}");
+    // The meadow's grass makes holes opaque while the curve is on, none after.
+    assert!(opaque[..16].iter().all(|&n| n > 0), "{opaque:?}");
+    assert!(opaque[16..].iter().all(|&n| n == 0), "{opaque:?}");
+    std::fs::remove_dir_all(&dir).ok();
+}

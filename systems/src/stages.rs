@@ -517,7 +517,9 @@ pub fn render_tiles(
         let restart = resized || (changed && !film.awaiting_resume());
         let frame_index = if restart { 0 } else { film.frames() };
         let view = CameraView::new(&camera, &origin.relative(transform.to_affine()));
-        let params = RenderParams::for_camera(&camera, seed.0).with_plan(&plan);
+        let params = RenderParams::for_camera(&camera, seed.0)
+            .with_plan(&plan)
+            .at_frame(frame_index);
         let rendered = match cluster.as_deref_mut() {
             Some(cluster) => {
                 let checks = FrameChecks {

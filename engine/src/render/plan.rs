@@ -16,6 +16,13 @@ pub struct FramePlan {
     pub light_subsets: Option<LightSubsets>,
 }
 
+/// The frames of an accumulation that adaptive transparency covers: after them every
+/// frame traces exact transparency, so a resting view converges to the exact image (the
+/// biased first frames weigh 16/N of N, their squared bias falling as 1/N² while the noise
+/// falls as 1/N). 16 is the display filter's fade for the 4×4 interleaving pattern: the
+/// first frames, shown while moving or just after, are the cheap ones.
+pub const ADAPTIVE_TRANSPARENCY_FRAMES: u32 = 16;
+
 /// Per-frame sampling settings.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct RenderParams {
@@ -50,6 +57,17 @@ impl Default for RenderParams {
 }
 
 impl RenderParams {
+    /// These settings for frame `frame` of an accumulation: adaptive transparency only
+    /// in its first [`ADAPTIVE_TRANSPARENCY_FRAMES`] frames, exact after.
+    pub fn at_frame(self, frame: u32) -> Self {
+        Self {
+            transparency: self
+                .transparency
+                .filter(|_| frame < ADAPTIVE_TRANSPARENCY_FRAMES),
+            ..self
+        }
+    }
+
     /// These settings with a plan's transparency curve and light subsets.
     pub fn with_plan(self, plan: &FramePlan) -> Self {
         Self {
@@ -81,5 +99,26 @@ impl SampleShading {
             light_samples,
             ..Default::default()
         }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn adaptive_transparency_ends_after_its_frames() {
+        let params = RenderParams {
+            transparency: Some(TransparencyCurve::default()),
+            ..RenderParams::default()
+        };
+        assert!(params.at_frame(0).transparency.is_some());
+        let last = ADAPTIVE_TRANSPARENCY_FRAMES - 1;
+        assert!(params.at_frame(last).transparency.is_some());
+        assert!(params.at_frame(last + 1).transparency.is_none());
+        assert_eq!(
+            params.at_frame(1000).samples_per_pixel,
+            params.samples_per_pixel
+        );
     }
 }
